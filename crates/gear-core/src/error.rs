@@ -1,0 +1,18 @@
+//! The one error type of gear-core; the Python binding maps each variant to a Python exception.
+
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum GearError {
+    /// No usable GPU adapter (not even a software one) could be found.
+    #[error("{0}")]
+    NoAdapter(String),
+    /// The device failed while running work (out of memory, lost device, validation).
+    #[error("GPU error: {0}")]
+    Gpu(String),
+    /// The caller passed something the kernels cannot work with.
+    #[error("{0}")]
+    InvalidInput(String),
+}
+
+pub type Result<T> = std::result::Result<T, GearError>;

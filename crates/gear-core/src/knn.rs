@@ -1,0 +1,1 @@
+//! k nearest neighbours of 3D points.

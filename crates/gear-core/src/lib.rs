@@ -1,0 +1,19 @@
+//! gear-core: the engine behind gear.
+//!
+//! - [`gpu`]: one wgpu device per process (a real GPU, else Mesa's software Vulkan adapter),
+//!   a pipeline cache keyed by shader specialisation, a buffer pool and readback helpers.
+//! - [`reduce`]: a small GPU reduction, the end-to-end check of the plumbing.
+//! - [`splat`]: the differentiable Gaussian rasterizer (WGSL kernels) and its f64 CPU reference.
+//! - [`voxel`]: shared voxel grids, dilation and connected components.
+//! - [`knn`]: k nearest neighbours in 3D.
+//!
+//! Nothing here knows about Python or torch; arrays come in and go out as slices.
+
+pub mod error;
+pub mod gpu;
+pub mod knn;
+pub mod reduce;
+pub mod splat;
+pub mod voxel;
+
+pub use error::{GearError, Result};

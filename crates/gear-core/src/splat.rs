@@ -1,0 +1,1 @@
+//! Differentiable Gaussian rasterizer: WGSL kernels, host code, and the f64 CPU reference.

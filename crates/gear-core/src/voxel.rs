@@ -1,0 +1,1 @@
+//! Voxel grids shared by several point sets: occupancy, set operations, dilation, components.

@@ -1,0 +1,3 @@
+from gear.cli import main
+
+raise SystemExit(main())
