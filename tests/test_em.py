@@ -69,8 +69,10 @@ def test_region_labels_bad_input_and_no_regions():
         region_pseudo_labels(prob, regions[:5], [False] * 3)
     with pytest.raises(ValueError, match="prismatic"):
         region_pseudo_labels(prob, regions, [False] * 2)
-    # numpy uint16 label maps (the scene format) are accepted.
-    from_numpy = region_pseudo_labels(prob, regions.numpy().astype(np.uint16), [False] * 3)
+    # numpy inputs (uint16 label maps are the scene format) are accepted.
+    from_numpy = region_pseudo_labels(
+        prob.numpy(), regions.numpy().astype(np.uint16), np.zeros(3, dtype=bool)
+    )
     assert torch.equal(from_numpy, region_pseudo_labels(prob, regions, [False] * 3))
 
 

@@ -28,7 +28,7 @@ def _check_image(t: torch.Tensor, name: str, ndim: int) -> None:
 
 
 def region_pseudo_labels(
-    prob: torch.Tensor,
+    prob: torch.Tensor | np.ndarray,
     regions: torch.Tensor | np.ndarray,
     prismatic: torch.Tensor | Sequence[bool],
     gamma: float = 4.0,
@@ -45,6 +45,7 @@ def region_pseudo_labels(
     top-2 gap > min_gap, and area >= min_area pixels. Pixels of untrusted regions keep their own
     argmax; pixels outside every region (id 0) are IGNORE (-1).
     """
+    prob = torch.as_tensor(prob)
     _check_image(prob, "prob", 3)
     regions = torch.as_tensor(np.asarray(regions) if not torch.is_tensor(regions) else regions)
     if regions.shape != prob.shape[:2]:
