@@ -1,0 +1,207 @@
+"""Meshes from depth images: truncated signed distance (TSDF) fusion and marching cubes.
+
+The volume covers only the bounding box of the back-projected valid depth (plus a margin), and the
+signed distance is evaluated only in a narrow band around those points: voxels farther than the
+truncation distance from every observed surface point can never hold a zero crossing. Each view
+updates the band voxels that project onto one of its valid pixels and lie in front of, or less than
+`trunc` behind, the observed depth (the usual projective TSDF with a running average). Marching
+cubes then runs only on cubes whose eight corners were observed, so unobserved space (inside the
+object, outside the band) never produces spurious surfaces.
+
+A pixel is valid when its alpha exceeds `alpha_threshold` and its depth is finite and positive;
+depth is camera-space z (not ray length), as the rasterizer's expected depth after dividing by
+alpha. Other pixels are skipped (they neither add surface nor carve space).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+
+import numpy as np
+import trimesh
+from scipy import ndimage
+from skimage.measure import marching_cubes
+
+from gear.camera import Camera
+
+# Dense grids hold a bool band mask plus float32 TSDF and weight (9 bytes per voxel): 2^25 voxels
+# is about 300 MB. Larger boxes are coarsened automatically (with a warning).
+MAX_VOXELS = 2**25
+_MIN_TRUNC_VOXELS = 2.5  # the band must span a few voxels for marching cubes to see a crossing
+
+
+def _check_inputs(
+    depths: Sequence[np.ndarray], alphas: Sequence[np.ndarray], cameras: Sequence[Camera]
+) -> None:
+    if not (len(depths) == len(alphas) == len(cameras)):
+        raise ValueError(
+            f"tsdf_fuse: got {len(depths)} depths, {len(alphas)} alphas, {len(cameras)} cameras"
+        )
+    for i, (d, a, cam) in enumerate(zip(depths, alphas, cameras, strict=True)):
+        shape = (cam.height, cam.width)
+        if np.shape(d) != shape:
+            raise ValueError(f"tsdf_fuse: depths[{i}] has shape {np.shape(d)}, camera is {shape}")
+        if np.shape(a) != shape:
+            raise ValueError(f"tsdf_fuse: alphas[{i}] has shape {np.shape(a)}, camera is {shape}")
+
+
+def _valid_mask(depth: np.ndarray, alpha: np.ndarray, alpha_threshold: float) -> np.ndarray:
+    d = np.asarray(depth, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        return (np.asarray(alpha) > alpha_threshold) & np.isfinite(d) & (d > 0)
+
+
+def _observed_points(
+    depths: Sequence[np.ndarray], valid: Sequence[np.ndarray], cameras: Sequence[Camera]
+) -> np.ndarray:
+    """World points of every valid pixel of every view, [N,3] float64."""
+    chunks = [
+        cam.unproject(np.where(m, np.asarray(d, np.float64), 0.0))
+        for d, m, cam in zip(depths, valid, cameras, strict=True)
+        if m.any()
+    ]
+    return np.concatenate(chunks) if chunks else np.zeros((0, 3))
+
+
+def _grid_size(lo: np.ndarray, hi: np.ndarray, voxel: float) -> np.ndarray:
+    return np.floor((hi - lo) / voxel).astype(np.int64) + 1
+
+
+def _choose_voxel(lo: np.ndarray, hi: np.ndarray, voxel: float, max_voxels: int) -> float:
+    """`voxel`, or a coarser size when the box would exceed `max_voxels` (warns)."""
+    count = float(np.prod(_grid_size(lo, hi, voxel)))
+    if count <= max_voxels:
+        return voxel
+    coarse = voxel * (count / max_voxels) ** (1.0 / 3.0)
+    while np.prod(_grid_size(lo, hi, coarse)) > max_voxels:
+        coarse *= 1.05
+    warnings.warn(
+        f"tsdf_fuse: a {hi - lo} box at voxel {voxel:g} needs {count:.3g} voxels "
+        f"(limit {max_voxels:.3g}); using voxel {coarse:.4g} instead",
+        stacklevel=3,
+    )
+    return coarse
+
+
+def tsdf_fuse(
+    depths: Sequence[np.ndarray],
+    alphas: Sequence[np.ndarray],
+    cameras: Sequence[Camera],
+    voxel: float = 0.004,
+    trunc: float = 0.02,
+    alpha_threshold: float = 0.5,
+    max_voxels: int = MAX_VOXELS,
+) -> trimesh.Trimesh:
+    """Fuse z-depth images into a mesh; returns its largest connected component.
+
+    depths[i], alphas[i]: [H,W] arrays matching cameras[i] (gear.camera.Camera, OpenCV axes).
+    Returns an empty Trimesh when no pixel is valid or no surface is found. When the observed
+    box needs more than `max_voxels` voxels, the voxel size grows until it fits (with a warning)
+    and `trunc` grows to at least 2.5 voxels.
+    """
+    if not (voxel > 0 and trunc > 0):
+        raise ValueError(f"tsdf_fuse: voxel and trunc must be positive, got {voxel}, {trunc}")
+    _check_inputs(depths, alphas, cameras)
+    valid = [_valid_mask(d, a, alpha_threshold) for d, a in zip(depths, alphas, strict=True)]
+    points = _observed_points(depths, valid, cameras)
+    if len(points) == 0:
+        return trimesh.Trimesh()
+
+    lo0, hi0 = points.min(axis=0), points.max(axis=0)
+    voxel = _choose_voxel(lo0 - 2 * trunc, hi0 + 2 * trunc, voxel, max_voxels)
+    trunc = max(trunc, _MIN_TRUNC_VOXELS * voxel)
+    margin = trunc + 2 * voxel
+    lo, hi = lo0 - margin, hi0 + margin
+    shape = tuple(_grid_size(lo, hi, voxel).tolist())
+
+    # Narrow band: voxels within `trunc` (Chebyshev, a superset of the Euclidean ball) of an
+    # observed point.
+    band = np.zeros(shape, dtype=bool)
+    idx = np.clip(np.round((points - lo) / voxel).astype(np.int64), 0, np.array(shape) - 1)
+    band[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    radius = int(np.ceil(trunc / voxel))
+    band = ndimage.binary_dilation(band, structure=np.ones((3, 3, 3), bool), iterations=radius)
+
+    flat = np.flatnonzero(band)
+    ijk = np.stack(np.unravel_index(flat, shape), axis=1)
+    # Voxel i sits at lo + i·voxel. Stored as [3, N]: numpy's [N,3] @ [3,3] is many times slower
+    # than [3,3] @ [3,N] for large N.
+    centres = np.ascontiguousarray((lo + ijk * voxel).T, dtype=np.float32)
+    tsdf = np.zeros(len(flat), np.float32)
+    weight = np.zeros(len(flat), np.float32)
+    for depth, mask, cam in zip(depths, valid, cameras, strict=True):
+        if not mask.any():
+            continue
+        _integrate(tsdf, weight, centres, np.where(mask, depth, 0).astype(np.float32), cam, trunc)
+
+    volume = np.ones(shape, np.float32)  # unobserved = outside; masked out below anyway
+    observed = np.zeros(shape, bool)
+    volume.reshape(-1)[flat] = tsdf
+    observed.reshape(-1)[flat] = weight > 0
+    return _extract_surface(volume, observed, lo, voxel)
+
+
+def _integrate(
+    tsdf: np.ndarray,
+    weight: np.ndarray,
+    centres: np.ndarray,
+    depth: np.ndarray,
+    cam: Camera,
+    trunc: float,
+) -> None:
+    """One view's projective TSDF update (running average with unit weights), in place.
+
+    `centres` is [3, N] world coordinates of the band voxels.
+    """
+    w2c = cam.world_to_cam.astype(np.float32)
+    cam_pts = w2c[:3, :3] @ centres + w2c[:3, 3:4]
+    z = cam_pts[2]
+    in_front = z > 1e-6
+    zs = np.where(in_front, z, 1.0)
+    # Pixel (u, v) has its centre at (i + 0.5, j + 0.5): the pixel index is floor(u), floor(v).
+    u = np.floor(cam.fx * cam_pts[0] / zs + cam.cx)
+    v = np.floor(cam.fy * cam_pts[1] / zs + cam.cy)
+    inside = in_front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    sel = np.flatnonzero(inside)
+    observed_depth = depth[v[sel].astype(np.int64), u[sel].astype(np.int64)]
+    sdf = observed_depth - z[sel]
+    keep = (observed_depth > 0) & (sdf >= -trunc)
+    sel, sdf = sel[keep], sdf[keep]
+    value = np.minimum(sdf / trunc, 1.0)
+    w = weight[sel]
+    tsdf[sel] = (tsdf[sel] * w + value) / (w + 1.0)
+    weight[sel] = w + 1.0
+
+
+def _extract_surface(
+    volume: np.ndarray, observed: np.ndarray, lo: np.ndarray, voxel: float
+) -> trimesh.Trimesh:
+    """Marching cubes on cubes whose 8 corners are observed; the largest component."""
+    if min(volume.shape) < 2:
+        return trimesh.Trimesh()
+    # skimage visits the cube whose lowest corner is (x, y, z) only where mask[x, y, z] is set.
+    cube_ok = np.zeros_like(observed)
+    corners = observed[:-1, :-1, :-1].copy()
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                corners &= observed[dx : dx + volume.shape[0] - 1, dy : dy + volume.shape[1] - 1,
+                                    dz : dz + volume.shape[2] - 1]
+    cube_ok[:-1, :-1, :-1] = corners
+    values = volume[cube_ok]
+    if not cube_ok.any() or values.min() > 0 or values.max() < 0:
+        return trimesh.Trimesh()
+    try:
+        verts, faces, _, _ = marching_cubes(
+            volume, level=0.0, spacing=(voxel,) * 3, mask=cube_ok, gradient_direction="descent"
+        )
+    except (ValueError, RuntimeError):  # no crossing inside the masked cubes
+        return trimesh.Trimesh()
+    if len(faces) == 0:
+        return trimesh.Trimesh()
+    mesh = trimesh.Trimesh(verts + lo, faces, process=True)
+    parts = mesh.split(only_watertight=False)
+    if len(parts) > 1:
+        mesh = max(parts, key=lambda m: len(m.faces))
+    return mesh
