@@ -1,0 +1,16 @@
+"""Scenes on disk (METHOD.md §1): load, validate, write."""
+
+from gear.data.load import load_scene, validate_scene
+from gear.data.scene import GroundTruth, GtJoint, Scene, SceneError, View
+from gear.data.write import write_scene
+
+__all__ = [
+    "GroundTruth",
+    "GtJoint",
+    "Scene",
+    "SceneError",
+    "View",
+    "load_scene",
+    "validate_scene",
+    "write_scene",
+]
