@@ -204,7 +204,7 @@ def _load_split(reader: _Reader, state: str, split: str, required: bool) -> list
         reader.problem(json_path, "has no frames")
     views: list[View] = []
     for k, frame in enumerate(meta["frames"]):
-        where = f"{json_path.name} frame {k}"
+        where = f"frame {k}"
         file_path = frame.get("file_path") if isinstance(frame, dict) else None
         if not isinstance(file_path, str):
             reader.problem(json_path, f"frame {k} has no file_path")
