@@ -1,0 +1,296 @@
+"""Accuracy against training time: train scenes under several budgets and score every run.
+
+Each (scene, budget[, ablation variant]) is trained with `gear.train.train`, scored with
+`gear eval` (the METHOD.md §5 metrics) and recorded with the wall time of every stage. Results go
+to OUT/accuracy.csv, OUT/accuracy.md (a markdown table with the machine it ran on) and
+OUT/accuracy.png (each metric against total training time, one line per scene).
+
+Budgets: a profile name (quick, fast, full) or an iteration count N, meaning the full profile's
+schedule rescaled to N stage-1 + N stage-3 iterations the way `fast` rescales it to 10k + 10k.
+Scenes: built-in object names (generated once into the work folder with `gear synth` settings
+given here) or paths to existing scene folders.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import platform
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+# metrics.json key, column/plot label, log-scale axis
+METRICS = [
+    ("axis_ang", "Axis Ang (deg)", True),
+    ("axis_pos", "Axis Pos (x10)", True),
+    ("geo_dist_deg", "Geo Dist rev (deg)", True),
+    ("geo_dist_m", "Geo Dist pri", True),
+    ("cd_s", "CD-s", True),
+    ("cd_m", "CD-m", True),
+    ("cd_w", "CD-w", True),
+    ("part_iou", "Part IoU", False),
+    ("psnr", "PSNR (dB)", False),
+]
+EM_INTERVALS = (50, 250, 500, 2000, 3000)
+FLAWED_MASKS = ("mask-over", "mask-under")
+_FULL_ITERATIONS = 30_000
+# Schedule fields placed at a fraction of the run; `fast` scales them by 1/3 with the iterations.
+_SCALED_FIELDS = ("densify_until", "stage3_densify_until", "joint_classify_iteration",
+                  "em_refine_joint_iterations")
+
+
+@dataclass
+class Run:
+    """One training + evaluation: what was run, how long each stage took, what it scored."""
+
+    scene: str
+    budget: str
+    variant: str = "default"
+    iterations: int = 0  # stage-1 iterations per state (= stage-3 iterations)
+    timings: dict[str, float] = field(default_factory=dict)
+    metrics: dict[str, float | None] = field(default_factory=dict)
+    type_mismatches: int = 0
+    status: str = "ok"
+
+    @property
+    def total_seconds(self) -> float:
+        return float(sum(self.timings.values()))
+
+    def row(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "scene": self.scene, "budget": self.budget, "variant": self.variant,
+            "iterations": self.iterations, "total_s": round(self.total_seconds, 2),
+        }
+        out.update({f"time_{k}_s": round(v, 2) for k, v in sorted(self.timings.items())})
+        out.update({key: self.metrics.get(key) for key, _, _ in METRICS})
+        out["type_mismatches"] = self.type_mismatches
+        out["status"] = self.status
+        return out
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scenes", default="fridge,drawer_cabinet,storage7",
+                        help="comma-separated built-in object names or scene folders")
+    parser.add_argument("--profiles", default="quick,2000,fast",
+                        help="comma-separated budgets: quick|fast|full or an iteration count N")
+    parser.add_argument("--ablation", action="store_true",
+                        help="instead of budgets: EM vs joint optimisation, EM interval "
+                        f"{'/'.join(map(str, EM_INTERVALS))}, clean vs flawed masks, all at the "
+                        "first budget")
+    parser.add_argument("--res", type=int, default=128, help="generated scenes' resolution")
+    parser.add_argument("--views", type=int, default=48, help="generated training views/state")
+    parser.add_argument("--test-views", type=int, default=8, help="generated test views/state")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=Path("bench"),
+                        help="folder for accuracy.csv/.md/.png (default ./bench)")
+    parser.add_argument("--work", type=Path, default=None,
+                        help="folder for generated scenes and training outputs "
+                        "(default OUT/accuracy_runs)")
+
+
+def budget_config(budget: str, seed: int = 0) -> tuple[Any, int]:
+    """(TrainConfig, iterations per stage) of a budget token."""
+    from gear.config import PROFILES, make_config
+
+    if budget in PROFILES:
+        config = make_config(budget, {"seed": seed})
+        return config, config.stage1_iterations
+    try:
+        n = int(budget)
+    except ValueError:
+        raise ValueError(f"budget {budget!r}: expected one of {PROFILES} or an iteration "
+                         "count") from None
+    if n < 10:
+        raise ValueError(f"budget {budget!r}: at least 10 iterations")
+    full = make_config("full")
+    scale = n / _FULL_ITERATIONS
+    changes: dict[str, Any] = {"seed": seed, "stage1_iterations": n, "stage3_iterations": n}
+    changes.update({f: max(1, round(getattr(full, f) * scale)) for f in _SCALED_FIELDS})
+    return full.replace(**changes), n
+
+
+def variants(ablation: bool) -> list[tuple[str, dict[str, Any], tuple[str, ...]]]:
+    """(label, config overrides, scene effects) of each run per scene and budget."""
+    if not ablation:
+        return [("default", {}, ())]
+    out: list[tuple[str, dict[str, Any], tuple[str, ...]]] = [
+        ("em", {"schedule": "em"}, ()),
+        ("joint", {"schedule": "joint"}, ()),
+        ("em-refine", {"schedule": "em-refine"}, ()),
+    ]
+    out += [(f"em_interval={n}", {"em_interval": n}, ()) for n in EM_INTERVALS]
+    out += [(f"masks:{effect}", {}, (effect,)) for effect in FLAWED_MASKS]
+    return out
+
+
+def _scene_dir(name: str, effects: tuple[str, ...], work: Path, args: argparse.Namespace) -> Path:
+    """An existing scene folder, or the built-in object generated (once) into `work`."""
+    if Path(name).is_dir():
+        if effects:
+            raise ValueError(f"{name}: flawed-mask variants need a built-in object name")
+        return Path(name)
+    from gear.synth import generate
+
+    tag = "-".join((name, f"r{args.res}", f"v{args.views}", *effects))
+    path = work / "scenes" / tag
+    if not (path / "transforms_train_start.json").is_file():
+        generate(name, path, res=args.res, views=args.views, test_views=args.test_views,
+                 seed=args.seed, effects=effects)
+    return path
+
+
+def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: dict[str, Any],
+            out_dir: Path, seed: int) -> Run:
+    """Train and score one configuration; failures are recorded, not raised."""
+    from gear.commands.eval import evaluate
+    from gear.train import train
+
+    config, iterations = budget_config(budget, seed)
+    config = config.replace(**overrides)
+    record = Run(scene, budget, variant, iterations)
+    try:
+        t0 = time.perf_counter()
+        result = train(scene_dir, out_dir, config, quiet=True)
+        record.timings = dict(result.timings) or {"total": time.perf_counter() - t0}
+        metrics = evaluate(out_dir, scene_dir)
+    except (RuntimeError, ValueError) as err:
+        record.status = f"failed: {err}"
+        return record
+    record.metrics = {key: metrics.get(key) for key, _, _ in METRICS}
+    record.type_mismatches = int(metrics.get("type_mismatches") or 0)
+    return record
+
+
+def run(args: argparse.Namespace) -> int:
+    scenes = [s for s in args.scenes.split(",") if s]
+    budgets = [b for b in args.profiles.split(",") if b]
+    for b in budgets:
+        budget_config(b)  # reject a bad token before any training starts
+    if args.ablation:
+        budgets = budgets[:1]
+    work = args.work or args.out / "accuracy_runs"
+    records: list[Run] = []
+    for scene in scenes:
+        for budget in budgets:
+            for variant, overrides, effects in variants(args.ablation):
+                scene_dir = _scene_dir(scene, effects, work, args)
+                out_dir = work / "outputs" / f"{Path(scene).name}-{budget}-{variant}"
+                print(f"[{scene} / {budget} / {variant}] training ...", flush=True)
+                record = run_one(Path(scene).name, scene_dir, budget, variant, overrides,
+                                 out_dir, args.seed)
+                records.append(record)
+                print(f"  {record.status}, {record.total_seconds:.1f} s", flush=True)
+                write_results(records, args.out, machine_description())  # partial results too
+    print(markdown_table(records, machine_description()))
+    return 0 if all(r.status == "ok" for r in records) else 1
+
+
+# --- outputs ---------------------------------------------------------------------------------
+
+def machine_description() -> str:
+    """CPU, core count and GPU adapter, so a table says where its times come from."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        from gear.device import adapter_info
+
+        info = adapter_info()
+        adapter = f"{info['name']} ({info['backend']})"
+    except (ImportError, RuntimeError) as err:
+        adapter = f"unavailable ({err})"
+    return f"{cpu}, {os.cpu_count()} cores, {platform.system()}; adapter {adapter}"
+
+
+def write_csv(records: Sequence[Run], path: Path) -> None:
+    rows = [r.row() for r in records]
+    columns: list[str] = []
+    for row in rows:
+        columns += [c for c in row if c not in columns]
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=columns)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({c: "" if row.get(c) is None else row.get(c) for c in columns})
+
+
+def _cell(value: float | None) -> str:
+    if value is None or not math.isfinite(value):
+        return "-"
+    return f"{value:.3f}" if abs(value) < 100 else f"{value:.1f}"
+
+
+def markdown_table(records: Sequence[Run], machine: str) -> str:
+    """One row per run: budget, stage times, metrics; failures shown as such."""
+    stages = sorted({k for r in records for k in r.timings})
+    header = ["scene", "budget", "variant", "iters", *[f"{s} (s)" for s in stages], "total (s)",
+              *[label for _, label, _ in METRICS], "type mism."]
+    lines = [f"Machine: {machine}", "", "| " + " | ".join(header) + " |",
+             "|" + "---|" * len(header)]
+    for r in records:
+        cells = [r.scene, r.budget, r.variant, str(r.iterations)]
+        cells += [_cell(r.timings.get(s)) for s in stages] + [_cell(r.total_seconds)]
+        if r.status == "ok":
+            cells += [_cell(r.metrics.get(key)) for key, _, _ in METRICS]
+        else:
+            cells += [r.status.replace("|", "/")] + [""] * (len(METRICS) - 1)
+        cells.append(str(r.type_mismatches))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(records: Sequence[Run], path: Path) -> None:
+    """Each metric against total training time; one line per scene (and variant)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
+
+    ok = [r for r in records if r.status == "ok" and r.total_seconds > 0]
+    cols = 3
+    rows = math.ceil(len(METRICS) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
+    lines: dict[str, list[Run]] = {}
+    for r in ok:
+        label = r.scene if r.variant == "default" else f"{r.scene} {r.variant}"
+        lines.setdefault(label, []).append(r)
+    for ax, (key, label, log_y) in zip(axes.flat, METRICS, strict=False):
+        drawn = False
+        for name, runs in lines.items():
+            points = sorted((r.total_seconds, r.metrics.get(key)) for r in runs
+                            if r.metrics.get(key) is not None)
+            if log_y:  # zeros cannot sit on a log axis: shown at the axis floor instead
+                points = [(t, max(v, 1e-4)) for t, v in points]
+            if points:
+                ax.plot(*zip(*points, strict=True), marker="o", label=name)
+                drawn = True
+        ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on short ranges
+        if log_y and drawn:
+            ax.set_yscale("log")
+        if not drawn:
+            ax.text(0.5, 0.5, "not computed", ha="center", va="center", transform=ax.transAxes)
+        ax.set_title(label)
+        ax.set_xlabel("training time (s)")
+        ax.grid(True, which="both", alpha=0.3)
+    for ax in list(axes.flat)[len(METRICS):]:
+        ax.axis("off")
+    if lines:
+        axes.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_results(records: Sequence[Run], out: Path, machine: str) -> dict[str, Path]:
+    """accuracy.csv, accuracy.md and accuracy.png in `out`; returns their paths."""
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"csv": out / "accuracy.csv", "md": out / "accuracy.md", "png": out / "accuracy.png"}
+    write_csv(records, paths["csv"])
+    paths["md"].write_text(markdown_table(records, machine))
+    plot(records, paths["png"])
+    return paths

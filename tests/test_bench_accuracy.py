@@ -1,0 +1,108 @@
+"""The accuracy benchmark's budgets and its table/plot writers, on fabricated records."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from gear.bench.accuracy import (
+    EM_INTERVALS,
+    METRICS,
+    Run,
+    budget_config,
+    markdown_table,
+    variants,
+    write_results,
+)
+from gear.cli import main
+from gear.config import make_config
+
+
+def fake_runs() -> list[Run]:
+    runs = []
+    for scene, scale in (("fridge", 1.0), ("storage7", 3.0)):
+        for budget, iters, seconds in (("quick", 500, 40.0), ("2000", 2000, 150.0),
+                                       ("fast", 10000, 700.0)):
+            err = scale * 500 / iters
+            runs.append(Run(
+                scene, budget, iterations=iters,
+                timings={"stage1": seconds * 0.5, "stage2": 1.0, "stage3": seconds * 0.5 - 1},
+                metrics={"axis_ang": err, "axis_pos": err / 2, "geo_dist_deg": err,
+                         "geo_dist_m": None, "cd_s": err, "cd_m": 0.0, "cd_w": err,
+                         "part_iou": 1 - err / 10, "psnr": 20 + iters / 1000},
+            ))
+    runs.append(Run("safe180", "quick", iterations=500, timings={"stage1": 3.0},
+                    status="failed: non-finite loss | stage 3"))
+    return runs
+
+
+def test_writers_on_fabricated_records(tmp_path):
+    runs = fake_runs()
+    paths = write_results(runs, tmp_path / "bench", "test machine, 2 cores")
+    with open(paths["csv"]) as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == len(runs)
+    first = rows[0]
+    assert first["scene"] == "fridge" and first["budget"] == "quick"
+    assert float(first["total_s"]) == pytest.approx(40.0)
+    assert float(first["time_stage1_s"]) == pytest.approx(20.0)
+    assert float(first["axis_ang"]) == pytest.approx(1.0)
+    assert first["geo_dist_m"] == ""  # not computable: empty cell, not "None" or 0
+    assert rows[-1]["status"].startswith("failed")
+
+    md = paths["md"].read_text()
+    lines = md.splitlines()
+    assert lines[0] == "Machine: test machine, 2 cores"
+    table = [ln for ln in lines if ln.startswith("|")]
+    assert len(table) == 2 + len(runs)  # header, separator, one row per run
+    widths = {ln.count("|") for ln in table}
+    assert len(widths) == 1  # every row has the header's column count (the '|' was escaped)
+    assert "failed: non-finite loss / stage 3" in md
+    storage_fast = next(ln for ln in table if "storage7" in ln and "| fast |" in ln)
+    assert "| 0.150 |" in storage_fast  # axis_ang = 3·500/10000
+
+    image = np.asarray(Image.open(paths["png"]))
+    assert image.shape[0] > 300 and image.shape[1] > 600
+    assert image[..., :3].std() > 10  # something was drawn
+
+
+def test_markdown_table_without_runs_has_header_only():
+    md = markdown_table([], "m")
+    assert md.count("\n|") == 2
+    assert all(label in md for _, label, _ in METRICS)
+
+
+def test_budget_rescales_like_fast():
+    fast, n = budget_config("fast")
+    assert n == 10_000
+    scaled, n = budget_config("10000")
+    for name in ("stage1_iterations", "stage3_iterations", "densify_until",
+                 "stage3_densify_until", "joint_classify_iteration",
+                 "em_refine_joint_iterations"):
+        assert getattr(scaled, name) == getattr(fast, name), name
+    small, n = budget_config("3000", seed=4)
+    assert (n, small.stage3_iterations, small.joint_classify_iteration) == (3000, 3000, 1000)
+    assert small.seed == 4
+    assert budget_config("quick")[0] == make_config("quick")
+    with pytest.raises(ValueError, match="budget 'medium'"):
+        budget_config("medium")
+
+
+def test_ablation_variants_cover_the_studies():
+    labels = [label for label, _, _ in variants(True)]
+    assert {"em", "joint", "em-refine"} <= set(labels)
+    assert [f"em_interval={n}" for n in EM_INTERVALS] == [lb for lb in labels if "interval" in lb]
+    effects = [fx for _, _, fx in variants(True) if fx]
+    assert ("mask-over",) in effects and ("mask-under",) in effects
+    assert variants(False) == [("default", {}, ())]
+
+
+def test_bad_budget_fails_before_training(tmp_path, capsys):
+    code = main(["bench", "accuracy", "--scenes", "fridge", "--profiles", "quick,lots",
+                 "--out", str(tmp_path)])
+    assert code == 1
+    assert "budget 'lots'" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
