@@ -14,7 +14,7 @@ from gear.synth.raster import rasterize
 
 LIGHT_DIR = np.array([0.35, -0.55, 0.76]) / np.linalg.norm([0.35, -0.55, 0.76])
 AMBIENT, DIFFUSE = 0.35, 0.65
-SPECULAR, SHININESS = 0.35, 40.0
+SPECULAR, SHININESS = 0.35, 16.0
 
 
 @dataclass
