@@ -188,3 +188,13 @@ def test_eval_missing_output_folder_is_one_line_error(tmp_path, capsys):
     scene = make_scene(tmp_path / "scene")
     assert main(["eval", str(tmp_path / "nope"), str(scene)]) == 1
     assert "no such output folder" in capsys.readouterr().err
+
+
+def test_eval_bad_joint_names_the_file(tmp_path):
+    scene = make_scene(tmp_path / "scene")
+    out = tmp_path / "out"
+    make_output(out)
+    (out / "joints.json").write_text(json.dumps({"joints": [{"type": "revolute",
+                                                            "axis": [0, 0, 0]}]}))
+    with pytest.raises(ValueError, match=r"joints\.json: joints\[0\]\.axis: zero-length"):
+        evaluate(out, scene, samples=100)

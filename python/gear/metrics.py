@@ -177,6 +177,9 @@ def match_parts(pred_joints: Sequence[Any], gt_joints: Sequence[Any]) -> Matchin
     exhaustive search over permutations. Counts may differ: extra joints on either side are
     listed as unmatched.
     """
+    # Validate every joint up front so a bad one is named by its index.
+    pred_joints = [Joint.from_any(p, f"joints[{i}]") for i, p in enumerate(pred_joints)]
+    gt_joints = [Joint.from_any(g, f"gt joint {i}") for i, g in enumerate(gt_joints)]
     n_gt, n_pred = len(gt_joints), len(pred_joints)
     if n_gt == 0 or n_pred == 0:
         return Matching([], [], [], list(range(n_gt)), list(range(n_pred)))

@@ -71,7 +71,10 @@ def evaluate(out_dir: str | Path, scene_dir: str | Path, samples: int = 10000, s
         skipped.append("scene has no gt/trans.json: joint errors, part matching and Chamfer "
                        "distances cannot be computed")
     elif pred_joints is not None:
-        matching = match_parts(pred_joints, scene.gt.joints)
+        try:
+            matching = match_parts(pred_joints, scene.gt.joints)
+        except ValueError as err:
+            raise ValueError(f"{out_dir / 'joints.json'}: {err}") from err
         result.update(_joint_summary(matching, pred_joints, scene.gt.joints))
     if scene.gt is not None:
         result.update(_chamfer_summary(out_dir, scene, matching, samples, seed, skipped))
