@@ -1,0 +1,467 @@
+"""Stage 2: coarse parts and motions from the two states' Gaussian centres (METHOD.md section 3).
+
+Both centre sets go into one voxel grid. Voxels occupied in both states are static; what is left
+of each state after removing the dilated static voxels is dynamic. The largest 26-connected
+dynamic components of the canonical state become the movable parts, each with an initial rigid
+motion onto the target state: a hinge about the intersection of its plane with a planar target
+component, or a slide, whichever the target's voxels support best; otherwise the identity.
+Canonical Gaussians inside a part's component get confident logits for it. Nothing here knows
+the object's size or up axis, and no ground truth is read. docs/method-notes.md explains the
+data-driven choices (voxel size, K) and where this goes beyond the paper.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import fftconvolve
+
+from gear import geometry
+
+# Logit seeding: +SEED inside a part's component (-SEED for the other parts); elsewhere the
+# static part gets +LEAN and the movable parts -LEAN (static-leaning, still easy to overturn).
+SEED_LOGIT = 3.0
+STATIC_LEAN = 1.0
+DILATION_RADIUS = 1
+PLANE_ASPECT = 3.0  # max/min principal extent above which a component is a plane
+PARALLEL_COS = 0.95  # |n_s . n_t| above this: the planes are too parallel to intersect
+MIN_OVERLAP = 0.1  # overlap / min(|S|, |T|) below this: no motion hypothesis is trusted
+# Voxel size from the data: the object's extent divided by these cell counts (a coarse grid for
+# one movable part, a fine one to separate neighbouring parts), but never finer than
+# SPACING_FACTOR times the median spacing of the centres, or static surfaces would not be seen
+# as occupied in both states.
+CELLS_SINGLE = 16
+CELLS_MULTI = 100
+SPACING_FACTOR = 2.0
+# K from the data: a canonical component is a part when it has at least MIN_PART_VOXELS voxels,
+# holds MIN_PART_FRACTION of the canonical centres and some motion maps it onto the target's
+# dynamic voxels (overlap >= MIN_OVERLAP).
+MIN_PART_VOXELS = 8
+MIN_PART_FRACTION = 0.01
+MAX_TARGET_CANDIDATES = 16
+MAX_DENSE_CELLS = 1 << 26
+SPACING_SAMPLES = 20000
+
+
+@dataclass
+class CoarseInit:
+    """Stage-2 result: canonical state, part count, per-Gaussian part logits [N_canonical, K]
+    (float32), one canonical -> target (R 3x3, t 3) per movable part, the voxel size used and
+    human-readable notes on the choices made."""
+
+    canonical: str
+    num_parts: int
+    logits: np.ndarray
+    motions: list[tuple[np.ndarray, np.ndarray]]
+    voxel_size: float
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Plane:
+    """Least-squares plane of a point set: centroid, unit normal (smallest principal axis) and
+    the ratio of the largest to the smallest principal extent."""
+
+    centroid: np.ndarray
+    normal: np.ndarray
+    aspect: float
+
+    @property
+    def is_plane(self) -> bool:
+        return self.aspect > PLANE_ASPECT
+
+
+@dataclass
+class Hypothesis:
+    """A candidate canonical -> target motion for one component, scored on the voxel grid.
+
+    landed: fraction of the component's cells that land on occupied target cells (the part
+    must end up where the target has matter). explained: target dynamic cells it covers over
+    min(|S|, |dynamic target|), the paper's overlap (it must explain some change).
+    """
+
+    kind: str  # "hinge", "slide" or "identity"
+    rot: np.ndarray
+    trans: np.ndarray
+    landed: float = 0.0
+    explained: float = 0.0
+
+    @property
+    def trusted(self) -> bool:
+        return self.kind != "identity" and self.explained >= MIN_OVERLAP
+
+
+IDENTITY = Hypothesis("identity", np.eye(3), np.zeros(3))
+
+
+# ---------------------------------------------------------------- geometry helpers
+
+
+def fit_plane(points: np.ndarray) -> Plane:
+    """PCA plane of points [N, 3]; extents are 2-98 percentile ranges (robust to strays)."""
+    pts = np.asarray(points, dtype=np.float64)
+    centroid = pts.mean(axis=0)
+    _, _, axes = np.linalg.svd(pts - centroid, full_matrices=False)
+    proj = (pts - centroid) @ axes.T
+    lo, hi = np.percentile(proj, [2, 98], axis=0)
+    extent = hi - lo
+    aspect = float(extent.max() / max(extent.min(), 1e-9 * max(extent.max(), 1e-300)))
+    return Plane(centroid, axes[-1] / np.linalg.norm(axes[-1]), aspect)
+
+
+def rotation_about_line(
+    axis: np.ndarray, pivot: np.ndarray, angle: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of a right-handed rotation by `angle` radians about the line (pivot, axis)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    rot = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
+    p = np.asarray(pivot, dtype=np.float64)
+    return rot, p - rot @ p
+
+
+def hinge_candidates(src: Plane, dst: Plane) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Rotations about the intersection line of two planes taking `src` onto `dst`.
+
+    Axis n_s x n_t, pivot the least-squares point on both planes (midway between the centroids
+    along the axis), angle arccos(n_s . n_t), and that angle + pi (the normals' signs are
+    arbitrary). Empty when the planes are nearly parallel.
+    """
+    cos = float(np.dot(src.normal, dst.normal))
+    if abs(cos) > PARALLEL_COS:
+        return []
+    axis = np.cross(src.normal, dst.normal)
+    axis /= np.linalg.norm(axis)
+    system = np.stack([src.normal, dst.normal, axis])
+    rhs = np.array(
+        [
+            src.normal @ src.centroid,
+            dst.normal @ dst.centroid,
+            axis @ (src.centroid + dst.centroid) / 2,
+        ]
+    )
+    pivot = np.linalg.lstsq(system, rhs, rcond=None)[0]
+    angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return [rotation_about_line(axis, pivot, a) for a in (angle, angle + np.pi)]
+
+
+class VoxelFrame:
+    """Maps points to the cells of the shared grid (origin at its min corner, cubic voxels)."""
+
+    def __init__(self, origin: np.ndarray, shape: tuple[int, int, int], voxel_size: float):
+        self.origin = np.asarray(origin, dtype=np.float64)
+        self.shape = tuple(int(s) for s in shape)
+        self.voxel_size = float(voxel_size)
+
+    def cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Integer cells [N, 3] of points and whether each lies inside the grid."""
+        idx = np.floor((np.asarray(points, np.float64) - self.origin) / self.voxel_size)
+        inside = np.all((idx >= 0) & (idx < np.array(self.shape)), axis=1)
+        return idx.astype(np.int64), inside
+
+    def centres(self, cells: np.ndarray) -> np.ndarray:
+        return self.origin + (np.asarray(cells, np.float64) + 0.5) * self.voxel_size
+
+    def lookup(self, grid: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """grid value at each point's cell (0 / False outside the grid)."""
+        idx, inside = self.cells(points)
+        out = np.zeros(len(idx), dtype=grid.dtype)
+        ok = idx[inside]
+        out[inside] = grid[ok[:, 0], ok[:, 1], ok[:, 2]]
+        return out
+
+
+def correlate(grid: np.ndarray, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For every whole-voxel shift d: how many cells of mask `src` land on `grid` when moved by
+    d (FFT cross-correlation). Returns the counts and the shift [3] of counts[0, 0, 0]."""
+    cells = np.argwhere(src)
+    lo, hi = cells.min(0), cells.max(0) + 1
+    crop = src[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
+    counts = np.rint(fftconvolve(grid.astype(np.float32), crop[::-1, ::-1, ::-1], mode="full"))
+    return counts, -(np.array(crop.shape) - 1) - lo
+
+
+# ---------------------------------------------------------------- stage-2 steps
+
+
+def _check_points(points: np.ndarray, name: str) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"{name}: expected shape [N, 3], got {list(pts.shape)}")
+    if len(pts) < 4:
+        raise ValueError(f"{name}: needs at least 4 points, got {len(pts)}")
+    if not np.isfinite(pts).all():
+        raise ValueError(f"{name}: contains non-finite coordinates")
+    return pts
+
+
+def mean_nn_distance(queries: np.ndarray, reference: np.ndarray) -> float:
+    _, dist = geometry.knn(reference.astype(np.float32), 1, queries=queries.astype(np.float32))
+    return float(dist[:, 0].mean())
+
+
+def choose_canonical(start: np.ndarray, end: np.ndarray) -> tuple[str, str]:
+    """The state whose centres lie farther, on average, from the other state's."""
+    d_start = mean_nn_distance(start, end)
+    d_end = mean_nn_distance(end, start)
+    canonical = "end" if d_end > d_start else "start"
+    return (
+        canonical,
+        f"canonical '{canonical}' (mean NN distance start->end {d_start:.4g}, "
+        f"end->start {d_end:.4g})",
+    )
+
+
+@dataclass
+class Scale:
+    """The object's size (largest side of its 0.5-99.5 percentile box) and the median distance
+    between neighbouring centres; voxel sizes derive from both (see the module constants)."""
+
+    extent: float
+    spacing: float
+
+    @classmethod
+    def of(cls, points: np.ndarray, seed: int = 0) -> Scale:
+        lo, hi = np.percentile(points, [0.5, 99.5], axis=0)
+        rng = np.random.default_rng(seed)
+        count = min(len(points), SPACING_SAMPLES)
+        sample = points[rng.choice(len(points), count, replace=False)]
+        # k = 2 against the full set: the first neighbour of a sampled point is itself.
+        _, dist = geometry.knn(points.astype(np.float32), 2, queries=sample.astype(np.float32))
+        scale = cls(float((hi - lo).max()), float(np.median(dist[:, 1])))
+        if not scale.extent > 0:
+            raise ValueError("means: the centres have no extent (all points coincide)")
+        return scale
+
+    def voxel_size(self, single_part: bool) -> float:
+        cells = CELLS_SINGLE if single_part else CELLS_MULTI
+        return max(self.extent / cells, SPACING_FACTOR * self.spacing)
+
+
+@dataclass
+class _Split:
+    """Static/dynamic split in the shared grid and the components of each state."""
+
+    frame: VoxelFrame
+    exact_target: np.ndarray  # target occupancy
+    occ_target: np.ndarray  # target occupancy, dilated by one voxel
+    dyn_target: np.ndarray  # target dynamic cells, dilated by one voxel
+    labels: tuple[np.ndarray, np.ndarray]  # component labels (canonical, target), 0 = none
+    sizes: tuple[np.ndarray, np.ndarray]  # voxel counts per label, largest first
+
+    def score(
+        self, src_cells: np.ndarray, kind: str, rot: np.ndarray, trans: np.ndarray
+    ) -> Hypothesis:
+        """The Hypothesis of moving `src_cells` by p -> R p + t (see Hypothesis)."""
+        moved = self.frame.centres(src_cells) @ np.asarray(rot).T + np.asarray(trans)
+        cells, inside = self.frame.cells(moved)
+        cells = cells[inside]
+        landed = self.occ_target[cells[:, 0], cells[:, 1], cells[:, 2]]
+        hit = cells[self.dyn_target[cells[:, 0], cells[:, 1], cells[:, 2]]]
+        explained = len(np.unique(hit, axis=0)) / max(
+            1, min(len(src_cells), int(self.dyn_target.sum()))
+        )
+        return Hypothesis(kind, rot, trans, float(landed.sum()) / len(src_cells), explained)
+
+    def best_slide(self, src_mask: np.ndarray) -> np.ndarray | None:
+        """The whole-voxel translation landing most of `src_mask` on target matter among those
+        explaining enough target dynamic cells (None if no shift does)."""
+        landed, offset = correlate(self.occ_target, src_mask)
+        exact, _ = correlate(self.exact_target, src_mask)
+        explained, _ = correlate(self.dyn_target, src_mask)
+        need = MIN_OVERLAP * min(int(src_mask.sum()), int(self.dyn_target.sum()))
+        # Ties within the one-voxel tolerance go to the shift that lands exactly.
+        rank = np.where(explained >= max(need, 1), landed + exact + 1e-3 * explained, -1.0)
+        peak = np.unravel_index(int(np.argmax(rank)), rank.shape)
+        if rank[peak] < 0:
+            return None
+        return (np.array(peak) + offset) * self.frame.voxel_size
+
+
+def split_static_dynamic(canon: np.ndarray, target: np.ndarray, voxel_size: float) -> _Split:
+    grid = geometry.voxel_grid([canon.astype(np.float32), target.astype(np.float32)], voxel_size)
+    shape = tuple(int(s) for s in grid.shape)
+    if int(np.prod(shape)) > MAX_DENSE_CELLS:
+        raise ValueError(
+            f"voxel_size {voxel_size:.4g} gives a {shape} grid; use a larger voxel size"
+        )
+    occ_c, occ_t = (np.asarray(o, dtype=bool).reshape(shape) for o in grid.occupancy)
+    static = np.asarray(geometry.dilate(occ_c & occ_t, DILATION_RADIUS), dtype=bool)
+    labels, sizes = [], []
+    for occ in (occ_c, occ_t):
+        lab, size = geometry.components(occ & ~static, connectivity=26)
+        labels.append(np.asarray(lab).reshape(shape))
+        sizes.append(np.asarray(size, dtype=np.int64))
+    frame = VoxelFrame(np.asarray(grid.origin), shape, voxel_size)
+    # Scores tolerate one voxel: a thin moved surface lands on the neighbour cell of its match.
+    near_occ = np.asarray(geometry.dilate(occ_t, 1), dtype=bool)
+    near_dyn = np.asarray(geometry.dilate(occ_t & ~static, 1), dtype=bool)
+    return _Split(frame, occ_t, near_occ, near_dyn, (labels[0], labels[1]), (sizes[0], sizes[1]))
+
+
+def init_motion(
+    split: _Split, comp: int, canon_plane: Plane, target: np.ndarray, target_labels: np.ndarray
+) -> Hypothesis:
+    """Initial motion of canonical component `comp`.
+
+    Candidates: the two plane-intersection hinges with every planar target component above a
+    size floor (when the component itself is planar), and the best whole-voxel slide. Among
+    those explaining enough target change, the one landing most cells on target matter wins
+    (a hinge on ties); the identity when none qualifies.
+    """
+    src_mask = split.labels[0] == comp
+    src_cells = np.argwhere(src_mask)
+    candidates: list[Hypothesis] = []
+    if canon_plane.is_plane:
+        floor = max(MIN_PART_VOXELS, 0.2 * len(src_cells))
+        for j, size in enumerate(split.sizes[1][:MAX_TARGET_CANDIDATES], start=1):
+            if size < floor:
+                break
+            plane = fit_plane(target[target_labels == j])
+            if plane.is_plane:
+                for rot, trans in hinge_candidates(canon_plane, plane):
+                    candidates.append(split.score(src_cells, "hinge", rot, trans))
+    shift = split.best_slide(src_mask)
+    if shift is not None:
+        candidates.append(split.score(src_cells, "slide", np.eye(3), shift))
+    best = IDENTITY
+    for hyp in candidates:
+        if hyp.trusted and (not best.trusted or hyp.landed > best.landed):
+            best = hyp
+    return best
+
+
+def seed_logits(part_of_point: np.ndarray, num_parts: int) -> np.ndarray:
+    """Logits [N, K]: +SEED/-SEED for points of a part's component, static-leaning elsewhere."""
+    n = len(part_of_point)
+    logits = np.full((n, num_parts), -STATIC_LEAN, dtype=np.float32)
+    logits[:, 0] = STATIC_LEAN
+    seeded = part_of_point > 0
+    logits[seeded] = -SEED_LOGIT
+    logits[seeded, part_of_point[seeded]] = SEED_LOGIT
+    return logits
+
+
+def _moves_along(split: _Split, cells: np.ndarray, motion: Hypothesis, own: Hypothesis) -> bool:
+    """Whether a component moves with an existing part: that part's motion explains it (is
+    trusted on its cells) and lands it nearly as well as the component's own best motion."""
+    shared = split.score(cells, motion.kind, motion.rot, motion.trans)
+    return shared.trusted and shared.landed >= own.landed - 0.05
+
+
+@dataclass
+class _Part:
+    components: list[int]
+    motion: Hypothesis
+
+
+def find_parts(
+    canon: np.ndarray, target: np.ndarray, num_parts: int | None, voxel_size: float
+) -> tuple[list[_Part], np.ndarray, list[str]]:
+    """Movable parts (their canonical components and initial motion) and each canonical
+    point's component label.
+
+    Components are visited largest first. One that an earlier part's motion moves onto target
+    matter about as well as its own best motion joins that part: a pulled drawer leaves two
+    separate dynamic pieces, its front and its back. With K given, parts whose motion is
+    trusted come first and untrusted components (identity motion) fill the remaining slots.
+    With K unknown, a component becomes a part only above the size floors and when trusted.
+    """
+    split = split_static_dynamic(canon, target, voxel_size)
+    frame = split.frame
+    canon_labels = frame.lookup(split.labels[0], canon)
+    target_labels = frame.lookup(split.labels[1], target)
+    sizes = split.sizes[0]
+    notes = [
+        f"voxel size {voxel_size:.4g}: {len(sizes)} canonical and {len(split.sizes[1])} target "
+        f"dynamic components (largest {sizes[:6].tolist()})"
+    ]
+    counts = np.bincount(canon_labels, minlength=len(sizes) + 1)
+    wanted = None if num_parts is None else num_parts - 1
+    visit = max(MAX_TARGET_CANDIDATES, 2 * (wanted or 0))
+    parts: list[_Part] = []
+    spare: list[_Part] = []
+    for comp, size in enumerate(sizes[:visit], start=1):
+        if size < MIN_PART_VOXELS or counts[comp] < 4:
+            break
+        if wanted is None and counts[comp] < MIN_PART_FRACTION * len(canon):
+            continue
+        hyp = init_motion(
+            split, comp, fit_plane(canon[canon_labels == comp]), target, target_labels
+        )
+        cells = np.argwhere(split.labels[0] == comp)
+        owner = next((p for p in parts if _moves_along(split, cells, p.motion, hyp)), None)
+        if owner is not None:
+            owner.components.append(comp)
+        elif not hyp.trusted:
+            spare.append(_Part([comp], IDENTITY))
+        elif wanted is None or len(parts) < wanted:
+            parts.append(_Part([comp], hyp))
+    if wanted is not None:
+        parts += spare[: max(0, wanted - len(parts))]
+    return parts, canon_labels, notes
+
+
+def coarse_init(
+    means_start: np.ndarray,
+    means_end: np.ndarray,
+    num_parts: int | None = None,
+    voxel_size: float | None = None,
+) -> CoarseInit:
+    """Stage 2 of METHOD.md: canonical state, K, part logits and initial part motions.
+
+    `num_parts` (K, static part included) and `voxel_size` are estimated from the data when None.
+    """
+    start = _check_points(means_start, "means_start")
+    end = _check_points(means_end, "means_end")
+    if num_parts is not None and (int(num_parts) != num_parts or num_parts < 1):
+        raise ValueError(f"num_parts must be a positive integer, got {num_parts}")
+    if voxel_size is not None and not (np.isfinite(voxel_size) and voxel_size > 0):
+        raise ValueError(f"voxel_size must be a positive number, got {voxel_size}")
+
+    canonical, note = choose_canonical(start, end)
+    canon, target = (start, end) if canonical == "start" else (end, start)
+    notes = [note]
+    if voxel_size is not None:
+        size = float(voxel_size)
+        parts, canon_labels, more = find_parts(canon, target, num_parts, size)
+    elif num_parts is not None:
+        size = Scale.of(np.concatenate([canon, target])).voxel_size(single_part=num_parts == 2)
+        parts, canon_labels, more = find_parts(canon, target, num_parts, size)
+    else:
+        # Detect on the fine grid; a single part is then redone on the coarse grid, as the paper
+        # does for one-joint objects, unless the coarse grid loses it.
+        scale = Scale.of(np.concatenate([canon, target]))
+        size = scale.voxel_size(single_part=False)
+        parts, canon_labels, more = find_parts(canon, target, None, size)
+        if len(parts) == 1:
+            coarse_size = scale.voxel_size(single_part=True)
+            again = find_parts(canon, target, 2, coarse_size)
+            if again[0] and again[0][0].motion.trusted:
+                size, (parts, canon_labels, more) = coarse_size, again
+        notes.append(f"K = {len(parts) + 1} estimated from the data")
+    notes += more
+
+    if not parts:
+        notes.append("no motion detected between the two states: one static part")
+        logits = seed_logits(np.zeros(len(canon), np.int64), 1)
+        return CoarseInit(canonical, 1, logits, [], size, notes)
+
+    k = len(parts) + 1 if num_parts is None else int(num_parts)
+    part_of_point = np.zeros(len(canon), dtype=np.int64)
+    motions = []
+    for index, part in enumerate(parts, start=1):
+        part_of_point[np.isin(canon_labels, part.components)] = index
+        hyp = part.motion
+        motions.append((hyp.rot, hyp.trans))
+        notes.append(
+            f"part {index}: components {part.components} "
+            f"({int((part_of_point == index).sum())} Gaussians), {hyp.kind} init "
+            f"(landed {hyp.landed:.2f}, explained {hyp.explained:.2f})"
+        )
+    for index in range(len(parts) + 1, k):
+        motions.append((np.eye(3), np.zeros(3)))
+        notes.append(f"part {index}: no dynamic component left; identity init, no seeded logits")
+    return CoarseInit(canonical, k, seed_logits(part_of_point, k), motions, size, notes)
