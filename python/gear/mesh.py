@@ -20,7 +20,8 @@ from collections.abc import Sequence
 
 import numpy as np
 import trimesh
-from scipy import ndimage
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
 from skimage.measure import marching_cubes
 
 from gear.camera import Camera
@@ -157,21 +158,20 @@ def _integrate(
     w2c = cam.world_to_cam.astype(np.float32)
     cam_pts = w2c[:3, :3] @ centres + w2c[:3, 3:4]
     z = cam_pts[2]
-    in_front = z > 1e-6
-    zs = np.where(in_front, z, 1.0)
-    # Pixel (u, v) has its centre at (i + 0.5, j + 0.5): the pixel index is floor(u), floor(v).
-    u = np.floor(cam.fx * cam_pts[0] / zs + cam.cx)
-    v = np.floor(cam.fy * cam_pts[1] / zs + cam.cy)
-    inside = in_front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    sel = np.flatnonzero(inside)
-    observed_depth = depth[v[sel].astype(np.int64), u[sel].astype(np.int64)]
-    sdf = observed_depth - z[sel]
-    keep = (observed_depth > 0) & (sdf >= -trunc)
-    sel, sdf = sel[keep], sdf[keep]
-    value = np.minimum(sdf / trunc, 1.0)
-    w = weight[sel]
-    tsdf[sel] = (tsdf[sel] * w + value) / (w + 1.0)
-    weight[sel] = w + 1.0
+    # Dense over all band voxels (no index compaction: cheaper than fancy-index writes).
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Pixel (u, v) has its centre at (i + 0.5, j + 0.5): the pixel index is floor(u), floor(v).
+        u = cam.fx * cam_pts[0] / z + cam.cx
+        v = cam.fy * cam_pts[1] / z + cam.cy
+    inside = (z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    pixel = np.where(inside, v.astype(np.int64) * cam.width + u.astype(np.int64), 0)
+    observed_depth = depth.reshape(-1)[pixel]
+    sdf = observed_depth - z
+    update = inside & (observed_depth > 0) & (sdf >= -trunc)
+    value = np.where(update, np.minimum(sdf / trunc, 1.0), 0.0)
+    new_weight = weight + update
+    tsdf[:] = (tsdf * weight + value) / np.maximum(new_weight, 1.0)
+    weight[:] = new_weight
 
 
 def _extract_surface(
@@ -200,8 +200,23 @@ def _extract_surface(
         return trimesh.Trimesh()
     if len(faces) == 0:
         return trimesh.Trimesh()
-    mesh = trimesh.Trimesh(verts + lo, faces, process=True)
-    parts = mesh.split(only_watertight=False)
-    if len(parts) > 1:
-        mesh = max(parts, key=lambda m: len(m.faces))
-    return mesh
+    faces = _largest_component(faces, len(verts))
+    return trimesh.Trimesh(verts + lo, faces, process=True)
+
+
+def _largest_component(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+    """The faces of the largest (by face count) vertex-connected component.
+
+    Marching cubes already shares vertices between neighbouring faces, so components of the
+    vertex graph are the mesh's connected pieces (much faster than splitting a Trimesh).
+    """
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    graph = sparse.coo_matrix(
+        (np.ones(len(edges), np.int8), (edges[:, 0], edges[:, 1])),
+        shape=(num_vertices, num_vertices),
+    )
+    count, labels = csgraph.connected_components(graph, directed=False)
+    if count <= 1:
+        return faces
+    face_labels = labels[faces[:, 0]]
+    return faces[face_labels == np.argmax(np.bincount(face_labels))]
