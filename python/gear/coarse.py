@@ -147,32 +147,6 @@ def hinge_candidates(src: Plane, dst: Plane) -> list[tuple[np.ndarray, np.ndarra
     return [rotation_about_line(axis, pivot, a) for a in (angle, angle + np.pi)]
 
 
-class VoxelFrame:
-    """Maps points to the cells of the shared grid (origin at its min corner, cubic voxels)."""
-
-    def __init__(self, origin: np.ndarray, shape: tuple[int, int, int], voxel_size: float):
-        self.origin = np.asarray(origin, dtype=np.float64)
-        self.shape = tuple(int(s) for s in shape)
-        self.voxel_size = float(voxel_size)
-
-    def cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Integer cells [N, 3] of points and whether each lies inside the grid."""
-        idx = np.floor((np.asarray(points, np.float64) - self.origin) / self.voxel_size)
-        inside = np.all((idx >= 0) & (idx < np.array(self.shape)), axis=1)
-        return idx.astype(np.int64), inside
-
-    def centres(self, cells: np.ndarray) -> np.ndarray:
-        return self.origin + (np.asarray(cells, np.float64) + 0.5) * self.voxel_size
-
-    def lookup(self, grid: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """grid value at each point's cell (0 / False outside the grid)."""
-        idx, inside = self.cells(points)
-        out = np.zeros(len(idx), dtype=grid.dtype)
-        ok = idx[inside]
-        out[inside] = grid[ok[:, 0], ok[:, 1], ok[:, 2]]
-        return out
-
-
 def correlate(grid: np.ndarray, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For every whole-voxel shift d: how many cells of mask `src` land on `grid` when moved by
     d (FFT cross-correlation). Returns the counts and the shift [3] of counts[0, 0, 0]."""
@@ -244,7 +218,7 @@ class Scale:
 class _Split:
     """Static/dynamic split in the shared grid and the components of each state."""
 
-    frame: VoxelFrame
+    grid: geometry.VoxelGrid
     exact_target: np.ndarray  # target occupancy
     occ_target: np.ndarray  # target occupancy, dilated by one voxel
     dyn_target: np.ndarray  # target dynamic cells, dilated by one voxel
@@ -255,9 +229,9 @@ class _Split:
         self, src_cells: np.ndarray, kind: str, rot: np.ndarray, trans: np.ndarray
     ) -> Hypothesis:
         """The Hypothesis of moving `src_cells` by p -> R p + t (see Hypothesis)."""
-        moved = self.frame.centres(src_cells) @ np.asarray(rot).T + np.asarray(trans)
-        cells, inside = self.frame.cells(moved)
-        cells = cells[inside]
+        moved = self.grid.centres(src_cells) @ np.asarray(rot).T + np.asarray(trans)
+        cells = self.grid.voxel_of(moved)
+        cells = cells[np.all((cells >= 0) & (cells < np.array(self.grid.shape)), axis=1)]
         landed = self.occ_target[cells[:, 0], cells[:, 1], cells[:, 2]]
         hit = cells[self.dyn_target[cells[:, 0], cells[:, 1], cells[:, 2]]]
         explained = len(np.unique(hit, axis=0)) / max(
@@ -277,28 +251,30 @@ class _Split:
         peak = np.unravel_index(int(np.argmax(rank)), rank.shape)
         if rank[peak] < 0:
             return None
-        return (np.array(peak) + offset) * self.frame.voxel_size
+        return (np.array(peak) + offset) * self.grid.voxel_size
 
 
 def split_static_dynamic(canon: np.ndarray, target: np.ndarray, voxel_size: float) -> _Split:
-    grid = geometry.voxel_grid([canon.astype(np.float32), target.astype(np.float32)], voxel_size)
-    shape = tuple(int(s) for s in grid.shape)
-    if int(np.prod(shape)) > MAX_DENSE_CELLS:
+    lo = np.minimum(canon.min(0), target.min(0))
+    hi = np.maximum(canon.max(0), target.max(0))
+    cells = np.prod(np.floor((hi - lo) / voxel_size) + 1)
+    if cells > MAX_DENSE_CELLS:
         raise ValueError(
-            f"voxel_size {voxel_size:.4g} gives a {shape} grid; use a larger voxel size"
+            f"voxel_size {voxel_size:.4g} is too small for this object ({cells:.3g} cells, "
+            f"limit {MAX_DENSE_CELLS}); use a larger voxel size"
         )
-    occ_c, occ_t = (np.asarray(o, dtype=bool).reshape(shape) for o in grid.occupancy)
-    static = np.asarray(geometry.dilate(occ_c & occ_t, DILATION_RADIUS), dtype=bool)
+    grid = geometry.voxel_grid([canon, target], voxel_size, max_dense_cells=MAX_DENSE_CELLS)
+    occ_c, occ_t = (o.to_dense(MAX_DENSE_CELLS) for o in grid.occupancy)
+    static = geometry.dilate(occ_c & occ_t, DILATION_RADIUS)
     labels, sizes = [], []
     for occ in (occ_c, occ_t):
         lab, size = geometry.components(occ & ~static, connectivity=26)
-        labels.append(np.asarray(lab).reshape(shape))
+        labels.append(lab)
         sizes.append(np.asarray(size, dtype=np.int64))
-    frame = VoxelFrame(np.asarray(grid.origin), shape, voxel_size)
     # Scores tolerate one voxel: a thin moved surface lands on the neighbour cell of its match.
-    near_occ = np.asarray(geometry.dilate(occ_t, 1), dtype=bool)
-    near_dyn = np.asarray(geometry.dilate(occ_t & ~static, 1), dtype=bool)
-    return _Split(frame, occ_t, near_occ, near_dyn, (labels[0], labels[1]), (sizes[0], sizes[1]))
+    near_occ = geometry.dilate(occ_t, 1)
+    near_dyn = geometry.dilate(occ_t & ~static, 1)
+    return _Split(grid, occ_t, near_occ, near_dyn, (labels[0], labels[1]), (sizes[0], sizes[1]))
 
 
 def init_motion(
@@ -370,9 +346,8 @@ def find_parts(
     With K unknown, a component becomes a part only above the size floors and when trusted.
     """
     split = split_static_dynamic(canon, target, voxel_size)
-    frame = split.frame
-    canon_labels = frame.lookup(split.labels[0], canon)
-    target_labels = frame.lookup(split.labels[1], target)
+    canon_labels = split.grid.point_labels(canon, split.labels[0])
+    target_labels = split.grid.point_labels(target, split.labels[1])
     sizes = split.sizes[0]
     notes = [
         f"voxel size {voxel_size:.4g}: {len(sizes)} canonical and {len(split.sizes[1])} target "
