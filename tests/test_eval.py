@@ -80,6 +80,11 @@ def make_output(out, d: float = 0.1):
     ]
     (out / "joints.json").parent.mkdir(parents=True, exist_ok=True)
     (out / "joints.json").write_text(json.dumps({"canonical": "start", "joints": joints}))
+    (out / "log.jsonl").write_text(
+        json.dumps({"event": "timings", "stage1": 12.5, "stage2": 0.5}) + "\n"
+        + json.dumps({"event": "timings", "stage1": 12.5, "stage2": 0.5, "stage3": 30.0}) + "\n"
+        + '{"iteration": 5, "loss"'  # a last line cut short by an interrupted write
+    )
     gt = gt_meshes()
     for state in ("start", "end"):
         folder = out / "meshes" / state
@@ -148,6 +153,8 @@ def test_eval_known_metrics(tmp_path, capsys):
     masked = 20 * math.log10(255 / ERR)
     assert m["psnr_masked"] == pytest.approx(masked, abs=1e-4)
     assert m["psnr"] == pytest.approx(masked - 10 * math.log10(192 / 256), abs=1e-4)
+    assert m["timings"] == {"stage1": 12.5, "stage2": 0.5, "stage3": 30.0}  # the last record
+    assert "stage3 30.0" in printed
     assert m["skipped"] == []
 
 
@@ -181,6 +188,7 @@ def test_eval_without_ground_truth_says_what_is_missing(tmp_path, capsys):
     assert "joints.json missing" in reasons
     assert "no gt/trans.json" in reasons
     assert "part IoU not computed" in reasons and "PSNR not computed" in reasons
+    assert "log.jsonl missing" in reasons and m["timings"] is None
     assert "not computed:" in printed
 
 

@@ -80,7 +80,28 @@ def evaluate(out_dir: str | Path, scene_dir: str | Path, samples: int = 10000, s
         result.update(_chamfer_summary(out_dir, scene, matching, samples, seed, skipped))
     result.update(_iou_summary(out_dir, scene, matching, skipped))
     result.update(_psnr_summary(out_dir, scene, BACKGROUNDS[background], skipped))
+    result["timings"] = _read_timings(out_dir, skipped)
     return result
+
+
+def _read_timings(out_dir: Path, skipped: list[str]) -> dict[str, float] | None:
+    """Wall seconds per stage: the last {"event": "timings"} record of log.jsonl."""
+    path = out_dir / "log.jsonl"
+    if not path.is_file():
+        skipped.append(f"{path} missing: wall time per stage not reported")
+        return None
+    timings = None
+    for line in path.read_text().splitlines():
+        try:
+            record = json.loads(line)
+        except ValueError:
+            continue  # a line cut short by an interrupted run
+        if isinstance(record, dict) and record.get("event") == "timings":
+            timings = {k: float(v) for k, v in record.items()
+                       if k != "event" and isinstance(v, int | float)}
+    if timings is None:
+        skipped.append(f"{path} has no timings record (unfinished run?)")
+    return timings
 
 
 def _read_joints(out_dir: Path, skipped: list[str]) -> list[dict] | None:
@@ -294,6 +315,9 @@ def format_table(metrics: dict[str, Any]) -> str:
     """Summary and per-joint tables as plain text."""
     lines = [f"{'metric':<26}value"]
     lines += [f"{label:<26}{_fmt(metrics.get(key))}" for key, label in SUMMARY]
+    if metrics.get("timings"):
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in metrics["timings"].items())
+        lines.append(f"{'wall time (s)':<26}{stages}")
     if metrics.get("joints"):
         lines += ["", f"{'GT joint':<10}{'pred':<6}{'type':<22}{'Axis Ang':>10}{'Axis Pos':>10}"
                       f"{'Geo Dist':>10}"]
