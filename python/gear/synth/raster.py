@@ -22,8 +22,6 @@ _MAX_PAIRS = 1 << 22  # (triangle, pixel) pairs per chunk: ~200 MB of temporarie
 _NO_HIT = torch.iinfo(torch.int64).max
 _EDGE_EPS = -1e-7  # inclusive edges: shared edges leave no cracks (the z-buffer resolves ties)
 TILE = 8  # coarse tiles reject most of the bounding box of long thin triangles cheaply
-_OFFSET_X = torch.arange(TILE * TILE, dtype=torch.int64) % TILE
-_OFFSET_Y = torch.arange(TILE * TILE, dtype=torch.int64) // TILE
 
 
 @dataclass
@@ -77,7 +75,7 @@ def rasterize(
     count = tw * th * visible
     tris = torch.nonzero(count).squeeze(1)
     count = count[tris]
-    tri = _Triangles(a, b, c, inv_z, tx0, ty0, tw)
+    tri = _Triangles(a, b, c, inv_z, bx0, bx1, by0, by1, tx0, ty0, tw)
 
     zbuf = torch.full((height * width,), _NO_HIT, dtype=torch.int64)
     ends = torch.cumsum(count, 0)
@@ -87,7 +85,7 @@ def rasterize(
         # Largest chunk of triangles whose tiles fit the budget (at least one triangle).
         base = ends[start - 1] if start else torch.tensor(0)
         stop = max(int(torch.searchsorted(ends, base + budget, right=True)), start + 1)
-        _scatter_chunk(zbuf, tris[start:stop], count[start:stop], tri, width, height)
+        _scatter_chunk(zbuf, tris[start:stop], count[start:stop], tri, width)
         start = stop
 
     hit = zbuf != _NO_HIT
@@ -112,12 +110,16 @@ def rasterize(
 
 @dataclass
 class _Triangles:
-    """Per-triangle setup: normalised edge functions, 1/z per corner, tile boxes."""
+    """Per-triangle setup: normalised edge functions, 1/z per corner, pixel and tile boxes."""
 
     a: torch.Tensor  # [F,3] edge-function x coefficients (inside >= 0, summing to 1)
     b: torch.Tensor
     c: torch.Tensor
     inv_z: torch.Tensor  # [F,3]
+    bx0: torch.Tensor  # [F] inclusive pixel bounding box, clipped to the image
+    bx1: torch.Tensor
+    by0: torch.Tensor
+    by1: torch.Tensor
     tx0: torch.Tensor  # [F] first tile and tile-box width
     ty0: torch.Tensor
     tw: torch.Tensor
@@ -129,7 +131,6 @@ def _scatter_chunk(
     count: torch.Tensor,
     tri: _Triangles,
     width: int,
-    height: int,
 ) -> None:
     """z-test the pixels of `tris` into `zbuf`: first discard tiles that the triangle cannot
     touch (an edge function negative at all four tile corners), then test each pixel of the
@@ -147,11 +148,20 @@ def _scatter_chunk(
     keep = ((a * xs + b * ys + c) >= _EDGE_EPS).all(1)
     t, x0, y0 = t[keep], x0[keep], y0[keep]
 
-    ix = (x0[:, None] + _OFFSET_X).reshape(-1)
-    iy = (y0[:, None] + _OFFSET_Y).reshape(-1)
-    t = t.repeat_interleave(TILE * TILE)
-    inside = (ix < width) & (iy < height)  # tiles may overhang the image's right/bottom edge
-    t, ix, iy = t[inside], ix[inside], iy[inside]
+    # Pixels of each kept tile that lie inside the triangle's bounding box (tiny triangles
+    # cost only their few pixels).
+    rx0, ry0 = torch.maximum(x0, tri.bx0[t]), torch.maximum(y0, tri.by0[t])
+    rw = torch.minimum(x0 + TILE - 1, tri.bx1[t]) - rx0 + 1
+    rh = torch.minimum(y0 + TILE - 1, tri.by1[t]) - ry0 + 1
+    n = rw * rh
+    pair = torch.repeat_interleave(torch.arange(len(t)), n)
+    local = torch.arange(len(pair), dtype=torch.int64) - torch.repeat_interleave(
+        torch.cumsum(n, 0) - n, n
+    )
+    w = rw[pair]
+    ix = rx0[pair] + local % w
+    iy = ry0[pair] + torch.div(local, w, rounding_mode="floor")
+    t = t[pair]
     sx = ix.to(torch.float32) + 0.5
     sy = iy.to(torch.float32) + 0.5
     lin = tri.a[t] * sx[:, None] + tri.b[t] * sy[:, None] + tri.c[t]  # screen barycentrics
