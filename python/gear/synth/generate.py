@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gear.camera import Camera
 from gear.data.scene import SPLITS, STATES, View
 from gear.data.write import write_scene
 from gear.synth import effects as fx
@@ -16,7 +17,7 @@ from gear.synth.cameras import sphere_cameras
 from gear.synth.model import Articulated
 from gear.synth.objects import build
 from gear.synth.regions import clean_regions
-from gear.synth.render import SolidTexture, pack, render
+from gear.synth.render import Packed, SolidTexture, pack, render
 
 
 def _prepare_out(out: Path) -> None:
@@ -100,7 +101,15 @@ def render_scene(
     return out
 
 
-def _view(packed, camera, solid, name, effects, rng) -> View:  # noqa: ANN001
+def _view(
+    packed: Packed,
+    camera: Camera,
+    solid: SolidTexture,
+    name: str,
+    effects: frozenset[str],
+    rng: np.random.Generator,
+) -> View:
+    """Render one view, then derive its region masks and apply the scene's effects."""
     image = render(packed, camera, solid, specular="specular" in effects)
     if not image.alpha.any():
         raise ValueError(f"{name}: the object is not visible from this camera")

@@ -41,6 +41,7 @@ def pack(obj: Articulated, state: str) -> Packed:
         groups.append((part.surfaces, part.joint.pose(value)))
     verts, rest, faces, part_ids, colors, pattern, uvs, tex = [], [], [], [], [], [], [], []
     textures: list[np.ndarray] = []
+    texture_index: dict[int, int] = {}  # id(image) -> index: shared images are sampled once
     offset = 0
     for pid, (surfaces, pose) in enumerate(groups):
         for s in surfaces:
@@ -54,8 +55,10 @@ def pack(obj: Articulated, state: str) -> Packed:
             pattern.append(np.full(n, s.pattern, dtype=np.float32))
             if s.texture is not None:
                 uvs.append(np.asarray(s.uv, dtype=np.float32))
-                tex.append(np.full(n, len(textures)))
-                textures.append(s.texture)
+                if id(s.texture) not in texture_index:
+                    texture_index[id(s.texture)] = len(textures)
+                    textures.append(s.texture)
+                tex.append(np.full(n, texture_index[id(s.texture)]))
             else:
                 uvs.append(np.zeros((n, 3, 2), dtype=np.float32))
                 tex.append(np.full(n, -1))

@@ -162,15 +162,16 @@ def _joint_values(
     return out
 
 
-_TEXTURES: dict[str, np.ndarray] = {}
-
-
-def _texture(path: Path) -> np.ndarray:
-    """Texture image as float32 RGB, shared between meshes that use the same file."""
+def _texture(path: Path, cache: dict[str, np.ndarray]) -> np.ndarray:
+    """Texture image as float32 RGB, shared between meshes that use the same image (PartNet
+    assets reference one image from dozens of .mtl files)."""
     key = hashlib.md5(path.read_bytes()).hexdigest()
-    if key not in _TEXTURES:
-        _TEXTURES[key] = np.asarray(Image.open(path).convert("RGB"), dtype=np.float32) / 255.0
-    return _TEXTURES[key]
+    if key not in cache:
+        try:
+            cache[key] = np.asarray(Image.open(path).convert("RGB"), dtype=np.float32) / 255.0
+        except OSError as err:
+            raise ValueError(f"texture {path} is unreadable ({err})") from None
+    return cache[key]
 
 
 def _mtl_maps(obj_path: Path) -> dict[str, Path]:
@@ -192,10 +193,15 @@ def _mtl_maps(obj_path: Path) -> dict[str, Path]:
     return maps
 
 
-def _mesh_surfaces(file: Path, scale: np.ndarray, color: np.ndarray | None) -> list[Surface]:
+def _mesh_surfaces(
+    file: Path, scale: np.ndarray, color: np.ndarray | None, textures: dict[str, np.ndarray]
+) -> list[Surface]:
     if not file.is_file():
         raise ValueError(f"mesh file {file} is missing")
-    scene = trimesh.load(file, force="scene", process=False)
+    try:
+        scene = trimesh.load(file, force="scene", process=False)
+    except Exception as err:  # trimesh raises many kinds for broken files
+        raise ValueError(f"mesh file {file} is unreadable ({err})") from None
     maps = _mtl_maps(file) if file.suffix.lower() == ".obj" else {}
     out = []
     for mesh in scene.dump():
@@ -212,7 +218,7 @@ def _mesh_surfaces(file: Path, scale: np.ndarray, color: np.ndarray | None) -> l
                 rgb = np.asarray(material.diffuse[:3], dtype=np.float64) / 255.0
             tex_file = maps.get(getattr(material, "name", None))
             if tex_file is not None and visual.uv is not None and tex_file.is_file():
-                uv, texture = np.asarray(visual.uv)[faces], _texture(tex_file)
+                uv, texture = np.asarray(visual.uv)[faces], _texture(tex_file, textures)
         elif visual.kind in ("face", "vertex"):
             face_rgb = np.asarray(visual.face_colors[:, :3], dtype=np.float64) / 255.0
             rgb = face_rgb
@@ -221,14 +227,14 @@ def _mesh_surfaces(file: Path, scale: np.ndarray, color: np.ndarray | None) -> l
     return out
 
 
-def _visual_surfaces(vis: _Visual, base: Path) -> list[Surface]:
+def _visual_surfaces(vis: _Visual, base: Path, textures: dict[str, np.ndarray]) -> list[Surface]:
     color = vis.color
     if vis.kind == "mesh":
         filename = vis.params.get("filename", "")
         if filename.startswith("package://"):
             filename = filename.split("/", 3)[-1]
         scale = _floats(vis.params.get("scale"), 3, [1, 1, 1], f"mesh {filename} scale")
-        surfaces = _mesh_surfaces(base / filename, scale, color)
+        surfaces = _mesh_surfaces(base / filename, scale, color, textures)
     else:
         if vis.kind == "box":
             mesh = trimesh.creation.box(
@@ -269,6 +275,7 @@ def load_urdf(
         children.setdefault(j.parent, []).append(j)
     static: list[Surface] = []
     parts: list[Part] = []
+    textures: dict[str, np.ndarray] = {}
     stack = [(roots[0], np.eye(4), -1)]
     seen = set()
     while stack:
@@ -279,7 +286,7 @@ def load_urdf(
         surfaces = [
             s.transformed(pose)
             for v in robot.links.get(link, [])
-            for s in _visual_surfaces(v, path.parent)
+            for s in _visual_surfaces(v, path.parent, textures)
         ]
         (static if part < 0 else parts[part].surfaces).extend(surfaces)
         for j in children.get(link, []):
