@@ -174,20 +174,30 @@ def run(args: argparse.Namespace) -> int:
     if args.ablation:
         budgets = budgets[:1]
     work = args.work or args.out / "accuracy_runs"
+    machine = machine_description()
     records: list[Run] = []
     for scene in scenes:
+        name = Path(scene).name
         for budget in budgets:
             for variant, overrides, effects in variants(args.ablation):
-                scene_dir = _scene_dir(scene, effects, work, args)
-                out_dir = work / "outputs" / f"{Path(scene).name}-{budget}-{variant}"
-                print(f"[{scene} / {budget} / {variant}] training ...", flush=True)
-                record = run_one(Path(scene).name, scene_dir, budget, variant, overrides,
-                                 out_dir, args.seed)
+                print(f"[{name} / {budget} / {variant}] ", end="", flush=True)
+                try:
+                    scene_dir = _scene_dir(scene, effects, work, args)
+                except ValueError as err:
+                    record = Run(name, budget, variant, status=f"skipped: {err}")
+                else:
+                    out_dir = work / "outputs" / f"{name}-{budget}-{variant}"
+                    record = run_one(name, scene_dir, budget, variant, overrides, out_dir,
+                                     args.seed)
                 records.append(record)
-                print(f"  {record.status}, {record.total_seconds:.1f} s", flush=True)
-                write_results(records, args.out, machine_description())  # partial results too
-    print(markdown_table(records, machine_description()))
-    return 0 if all(r.status == "ok" for r in records) else 1
+                print(f"{record.status}, {record.total_seconds:.1f} s", flush=True)
+                # Table and CSV after every run, so a long benchmark can be read as it goes.
+                args.out.mkdir(parents=True, exist_ok=True)
+                write_csv(records, args.out / "accuracy.csv")
+                (args.out / "accuracy.md").write_text(markdown_table(records, machine))
+    write_results(records, args.out, machine)
+    print(markdown_table(records, machine))
+    return 1 if any(r.status.startswith("failed") for r in records) else 0
 
 
 # --- outputs ---------------------------------------------------------------------------------
