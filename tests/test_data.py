@@ -210,3 +210,16 @@ def test_gt_joint_rejects_bad_axis():
         GtJoint("revolute", [0, 0, 0], [0, 0, 0], 10.0)
     with pytest.raises(ValueError, match="type"):
         GtJoint("screw", [0, 0, 0], [0, 0, 1], 10.0)
+
+
+def test_scene_without_depth_or_masks_loads(scene_dir, tmp_path, capsys):
+    scene = load_scene(scene_dir, splits=("train",))
+    for views in scene.views.values():
+        for v in views["train"]:
+            v.depth = v.regions = v.parts = None
+    write_scene(tmp_path / "bare", scene.views)
+    bare = load_scene(tmp_path / "bare")
+    assert bare.gt is None and not bare.has_depth and not bare.has_regions
+    assert bare.test("start") == [] and len(bare.train("end")) == 4
+    assert main(["check", str(tmp_path / "bare")]) == 0
+    assert "has RGBA only" in capsys.readouterr().out
