@@ -7,7 +7,6 @@ use pyo3::prelude::*;
 
 /// One expected dimension: a fixed size, or any size (named for the message).
 #[derive(Clone, Copy)]
-#[allow(dead_code)] // `Fixed` is for the splat/geometry bindings; drop this once they use it
 pub enum Dim {
     Fixed(usize),
     Any(&'static str),
@@ -66,4 +65,20 @@ pub fn f32_array<'py>(
     shape: &[Dim],
 ) -> PyResult<PyReadonlyArrayDyn<'py, f32>> {
     typed_array::<f32>(obj, name, "float32", shape)
+}
+
+pub fn i64_array<'py>(
+    obj: &Bound<'py, PyAny>,
+    name: &str,
+    shape: &[Dim],
+) -> PyResult<PyReadonlyArrayDyn<'py, i64>> {
+    typed_array::<i64>(obj, name, "int64", shape)
+}
+
+pub fn bool_array<'py>(
+    obj: &Bound<'py, PyAny>,
+    name: &str,
+    shape: &[Dim],
+) -> PyResult<PyReadonlyArrayDyn<'py, bool>> {
+    typed_array::<bool>(obj, name, "bool", shape)
 }

@@ -1,7 +1,241 @@
 //! Bindings of voxel grids, components and KNN (gear_core::voxel, gear_core::knn).
+//!
+//! Arguments are checked here (dtype, shape, layout); values (finite points, voxel size, k,
+//! key order) are checked by gear-core, whose errors become `ValueError`s naming the argument.
+//! The work runs without the GIL on read-only views of the caller's arrays.
 
+use gear_core::knn::{as_points, Queries};
+use gear_core::voxel::{self, check_keys, Connectivity, GridSpec};
+use numpy::{IntoPyArray, PyArray1, PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
+use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-pub fn register(_m: &Bound<'_, PyModule>) -> PyResult<()> {
+use crate::args::{bool_array, f32_array, i64_array, Dim};
+use crate::errors::guarded;
+
+const POINTS: [Dim; 2] = [Dim::Any("N"), Dim::Fixed(3)];
+const KEYS: [Dim; 1] = [Dim::Any("M")];
+const GRID: [Dim; 3] = [Dim::Any("X"), Dim::Any("Y"), Dim::Any("Z")];
+
+type Array<'py, T> = Bound<'py, PyArrayDyn<T>>;
+type Vector<'py, T> = Bound<'py, PyArray1<T>>;
+
+/// `k` nearest neighbours: `(indices int64 [M, k], distances float32 [M, k])`, nearest first;
+/// without `queries`, each point's neighbours among the others.
+#[pyfunction]
+#[pyo3(signature = (points, k, queries=None))]
+fn knn<'py>(
+    py: Python<'py>,
+    points: &Bound<'py, PyAny>,
+    k: i64,
+    queries: Option<&Bound<'py, PyAny>>,
+) -> PyResult<(Array<'py, i64>, Array<'py, f32>)> {
+    let k = usize::try_from(k)
+        .map_err(|_| PyValueError::new_err(format!("k: must be at least 1, got {k}")))?;
+    let points = f32_array(points, "points", &POINTS)?;
+    let queries = queries
+        .map(|q| f32_array(q, "queries", &POINTS))
+        .transpose()?;
+    let refs = as_points(points.as_slice()?);
+    let qs = match &queries {
+        None => Queries::SelfExcluded,
+        Some(q) => Queries::Points(as_points(q.as_slice()?)),
+    };
+    let found = guarded(py, move || gear_core::knn::knn(refs, qs, k))?;
+    let rows = found.len();
+    Ok((
+        reshape(found.indices.into_pyarray(py), &[rows, k])?,
+        reshape(found.distances.into_pyarray(py), &[rows, k])?,
+    ))
+}
+
+/// `(origin, shape)` of the grid enclosing all `point_sets` at `voxel_size`.
+#[pyfunction]
+fn grid_enclosing(
+    py: Python<'_>,
+    point_sets: Vec<Bound<'_, PyAny>>,
+    voxel_size: f64,
+) -> PyResult<([f64; 3], [usize; 3])> {
+    let arrays = point_sets
+        .iter()
+        .enumerate()
+        .map(|(i, s)| f32_array(s, &format!("point_sets[{i}]"), &POINTS))
+        .collect::<PyResult<Vec<_>>>()?;
+    let sets = arrays
+        .iter()
+        .map(|a| a.as_slice().map(as_points))
+        .collect::<Result<Vec<_>, _>>()?;
+    let grid = guarded(py, move || GridSpec::enclosing(&sets, voxel_size))?;
+    Ok((grid.origin, grid.shape))
+}
+
+/// The voxel `[i, j, k]` of each point (int64 [N, 3], possibly outside the grid).
+#[pyfunction]
+fn voxel_indices<'py>(
+    py: Python<'py>,
+    points: &Bound<'py, PyAny>,
+    origin: [f64; 3],
+    voxel_size: f64,
+    shape: [usize; 3],
+) -> PyResult<Array<'py, i64>> {
+    let grid = GridSpec::new(origin, voxel_size, shape).map_err(crate::errors::to_py)?;
+    let points = f32_array(points, "points", &POINTS)?;
+    let pts = as_points(points.as_slice()?);
+    let idx = guarded(py, move || voxel::voxel_indices(&grid, pts))?;
+    let n = idx.len();
+    reshape(idx.into_flattened().into_pyarray(py), &[n, 3])
+}
+
+/// Dense occupancy (bool [X, Y, Z]) of the voxels holding `points`; outside points ignored.
+#[pyfunction]
+fn occupancy_dense<'py>(
+    py: Python<'py>,
+    points: &Bound<'py, PyAny>,
+    origin: [f64; 3],
+    voxel_size: f64,
+    shape: [usize; 3],
+) -> PyResult<Array<'py, bool>> {
+    let grid = GridSpec::new(origin, voxel_size, shape).map_err(crate::errors::to_py)?;
+    let points = f32_array(points, "points", &POINTS)?;
+    let pts = as_points(points.as_slice()?);
+    let occ = guarded(py, move || voxel::occupancy_dense(&grid, pts))?;
+    reshape(occ.into_pyarray(py), &shape)
+}
+
+/// Sparse occupancy (sorted distinct int64 keys) of the voxels holding `points`.
+#[pyfunction]
+fn occupancy_keys<'py>(
+    py: Python<'py>,
+    points: &Bound<'py, PyAny>,
+    origin: [f64; 3],
+    voxel_size: f64,
+    shape: [usize; 3],
+) -> PyResult<Vector<'py, i64>> {
+    let grid = GridSpec::new(origin, voxel_size, shape).map_err(crate::errors::to_py)?;
+    let points = f32_array(points, "points", &POINTS)?;
+    let pts = as_points(points.as_slice()?);
+    let keys = guarded(py, move || voxel::occupancy_keys(&grid, pts))?;
+    Ok(keys.into_pyarray(py))
+}
+
+/// `op` in {"and", "or", "sub"} on two sparse occupancies of the same grid `shape`.
+#[pyfunction]
+fn keys_set_op<'py>(
+    py: Python<'py>,
+    op: &str,
+    a: &Bound<'py, PyAny>,
+    b: &Bound<'py, PyAny>,
+    shape: [usize; 3],
+) -> PyResult<Vector<'py, i64>> {
+    let merge = match op {
+        "and" => voxel::intersection,
+        "or" => voxel::union,
+        "sub" => voxel::difference,
+        _ => {
+            return Err(PyValueError::new_err(format!(
+                "op: unknown set operation {op:?}"
+            )))
+        }
+    };
+    let (a, b) = (i64_array(a, "a", &KEYS)?, i64_array(b, "b", &KEYS)?);
+    let (ka, kb) = (a.as_slice()?, b.as_slice()?);
+    let out = guarded(py, move || {
+        check_keys(ka, shape, "a")?;
+        check_keys(kb, shape, "b")?;
+        Ok(merge(ka, kb))
+    })?;
+    Ok(out.into_pyarray(py))
+}
+
+/// Dense dilation of `occ` (bool [X, Y, Z]) by a cube of side `2 * radius + 1`.
+#[pyfunction]
+fn dilate_dense<'py>(
+    py: Python<'py>,
+    occ: &Bound<'py, PyAny>,
+    radius: usize,
+) -> PyResult<Array<'py, bool>> {
+    let occ = bool_array(occ, "occ", &GRID)?;
+    let shape = grid_shape(occ.shape());
+    let cells = occ.as_slice()?;
+    let out = guarded(py, move || Ok(voxel::dilate_dense(cells, shape, radius)))?;
+    reshape(out.into_pyarray(py), &shape)
+}
+
+/// Sparse dilation of sorted `keys` in a grid of `shape`.
+#[pyfunction]
+fn dilate_keys<'py>(
+    py: Python<'py>,
+    keys: &Bound<'py, PyAny>,
+    shape: [usize; 3],
+    radius: usize,
+) -> PyResult<Vector<'py, i64>> {
+    let keys = i64_array(keys, "keys", &KEYS)?;
+    let k = keys.as_slice()?;
+    let out = guarded(py, move || {
+        check_keys(k, shape, "keys")?;
+        voxel::dilate_keys(k, shape, radius)
+    })?;
+    Ok(out.into_pyarray(py))
+}
+
+/// Components of a dense occupancy: `(labels int32 [X, Y, Z], sizes int64 [C])`.
+#[pyfunction]
+fn components_dense<'py>(
+    py: Python<'py>,
+    occ: &Bound<'py, PyAny>,
+    connectivity: i64,
+) -> PyResult<(Array<'py, i32>, Vector<'py, i64>)> {
+    let conn = Connectivity::from_neighbours(connectivity).map_err(crate::errors::to_py)?;
+    let occ = bool_array(occ, "occ", &GRID)?;
+    let shape = grid_shape(occ.shape());
+    let cells = occ.as_slice()?;
+    let found = guarded(py, move || Ok(voxel::components_dense(cells, shape, conn)))?;
+    Ok((
+        reshape(found.labels.into_pyarray(py), &shape)?,
+        found.sizes.into_pyarray(py),
+    ))
+}
+
+/// Components of a sparse occupancy: `(labels int32 [M] per key, sizes int64 [C])`.
+#[pyfunction]
+fn components_keys<'py>(
+    py: Python<'py>,
+    keys: &Bound<'py, PyAny>,
+    shape: [usize; 3],
+    connectivity: i64,
+) -> PyResult<(Vector<'py, i32>, Vector<'py, i64>)> {
+    let conn = Connectivity::from_neighbours(connectivity).map_err(crate::errors::to_py)?;
+    let keys = i64_array(keys, "keys", &KEYS)?;
+    let k = keys.as_slice()?;
+    let found = guarded(py, move || {
+        check_keys(k, shape, "keys")?;
+        Ok(voxel::components_keys(k, shape, conn))
+    })?;
+    Ok((found.labels.into_pyarray(py), found.sizes.into_pyarray(py)))
+}
+
+fn grid_shape(shape: &[usize]) -> [usize; 3] {
+    [shape[0], shape[1], shape[2]]
+}
+
+/// Gives a flat result array its real shape (a view; no copy).
+fn reshape<'py, T: numpy::Element>(
+    flat: Bound<'py, PyArray1<T>>,
+    shape: &[usize],
+) -> PyResult<Array<'py, T>> {
+    flat.reshape(shape)
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(knn, m)?)?;
+    m.add_function(wrap_pyfunction!(grid_enclosing, m)?)?;
+    m.add_function(wrap_pyfunction!(voxel_indices, m)?)?;
+    m.add_function(wrap_pyfunction!(occupancy_dense, m)?)?;
+    m.add_function(wrap_pyfunction!(occupancy_keys, m)?)?;
+    m.add_function(wrap_pyfunction!(keys_set_op, m)?)?;
+    m.add_function(wrap_pyfunction!(dilate_dense, m)?)?;
+    m.add_function(wrap_pyfunction!(dilate_keys, m)?)?;
+    m.add_function(wrap_pyfunction!(components_dense, m)?)?;
+    m.add_function(wrap_pyfunction!(components_keys, m)?)?;
     Ok(())
 }

@@ -1,1 +1,0 @@
-//! k nearest neighbours of 3D points.

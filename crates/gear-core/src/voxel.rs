@@ -1,1 +1,0 @@
-//! Voxel grids shared by several point sets: occupancy, set operations, dilation, components.
