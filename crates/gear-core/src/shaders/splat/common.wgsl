@@ -1,0 +1,44 @@
+// Shared by the per-frame kernels (project, blend and their backward passes): the frame
+// uniform and small numeric helpers. Contract constants (NEAR, FAR, LOW_PASS, MIN_ALPHA,
+// MAX_ALPHA, MIN_TRANSMITTANCE, QUAT_EPS, TILE) and CHANNELS, WITH_DEPTH are prepended by the
+// host at pipeline compile time.
+
+struct Frame {
+    // Rows of world_to_cam: rotation in xyz, translation in w.
+    rot0: vec4<f32>,
+    rot1: vec4<f32>,
+    rot2: vec4<f32>,
+    // fx, fy, cx, cy.
+    focal: vec4<f32>,
+    // |x/z| and |y/z| limits of the Jacobian clamp.
+    limits: vec4<f32>,
+    n: u32,
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
+    background: array<vec4<f32>, 16>,
+}
+
+@group(0) @binding(15) var<uniform> frame: Frame;
+
+fn is_finite(x: f32) -> bool {
+    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
+}
+
+fn background(c: u32) -> f32 {
+    return frame.background[c / 4u][c % 4u];
+}
+
+// Exponent of the Gaussian at offset d = pixel - mean: -½ dᵀ conic d (conic = a, b, c).
+fn gaussian_power(d: vec2<f32>, conic: vec3<f32>) -> f32 {
+    return -0.5 * (conic.x * d.x * d.x + conic.z * d.y * d.y) - conic.y * d.x * d.y;
+}
+
+// Index of a 1D thread in a grid folded into 2D (see gpu::workgroup_grid).
+fn thread_index(gid: vec3<u32>, nwg: vec3<u32>, wg_size: u32) -> u32 {
+    return gid.x + gid.y * nwg.x * wg_size;
+}

@@ -1,0 +1,33 @@
+// Stage 3, one thread per Gaussian in depth order: writes a (tile id, Gaussian) pair for every
+// tile of its rectangle at the scanned offset. Pairs are thus in depth order, and a stable sort
+// by tile id alone leaves each tile's list sorted by depth (ties by index).
+
+struct EmitParams {
+    n: u32,
+    tiles_x: u32,
+}
+
+@group(0) @binding(0) var<storage, read> order: array<u32>;
+@group(0) @binding(1) var<storage, read> rects: array<vec4<u32>>;
+@group(0) @binding(2) var<storage, read> offsets: array<u32>;
+@group(0) @binding(3) var<storage, read_write> tile_keys: array<u32>;
+@group(0) @binding(4) var<storage, read_write> tile_values: array<u32>;
+@group(0) @binding(5) var<uniform> params: EmitParams;
+
+@compute @workgroup_size(256)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = gid.x + gid.y * nwg.x * 256u;
+    if i >= params.n {
+        return;
+    }
+    let g = order[i];
+    let r = rects[g];
+    var slot = offsets[i];
+    for (var y = r.y; y < r.w; y++) {
+        for (var x = r.x; x < r.z; x++) {
+            tile_keys[slot] = y * params.tiles_x + x;
+            tile_values[slot] = g;
+            slot++;
+        }
+    }
+}

@@ -1,0 +1,23 @@
+//! The numbers of the rasterizer contract (/work/notes/raster_contract.md), in one place so the
+//! GPU kernels (specialised with them) and the f64 reference cannot drift apart.
+
+/// Gaussians closer than this (camera-space z) are culled.
+pub const NEAR: f64 = 0.01;
+/// Gaussians farther than this are culled.
+pub const FAR: f64 = 1e4;
+/// Added to the diagonal of the 2D covariance (anti-aliasing low-pass, in pixels²).
+pub const LOW_PASS: f64 = 0.3;
+/// Smallest alpha that is blended; also the opacity below which a Gaussian is culled.
+pub const MIN_ALPHA: f64 = 1.0 / 255.0;
+/// Largest alpha a single Gaussian may have.
+pub const MAX_ALPHA: f64 = 0.999;
+/// Blending stops before transmittance would fall below this.
+pub const MIN_TRANSMITTANCE: f64 = 1e-4;
+/// Screen-space frustum slack of the Jacobian clamp: |x/z| <= CLAMP_FACTOR * 0.5 * W / fx.
+pub const CLAMP_FACTOR: f64 = 1.3;
+/// Quaternions are normalised by max(|q|, QUAT_EPS).
+pub const QUAT_EPS: f64 = 1e-12;
+/// Tiles are TILE x TILE pixels.
+pub const TILE: u32 = 16;
+/// Largest number of feature channels.
+pub const MAX_CHANNELS: usize = 64;

@@ -1,0 +1,229 @@
+//! The rasterizer's WGSL kernels as cached pipelines, and the one way they are dispatched.
+//!
+//! Every kernel is specialised in its source (see [`ShaderSpec`]): the contract constants
+//! always, and `CHANNELS` / `WITH_DEPTH` where the kernel touches features or depth, so a
+//! render without depth compiles no depth code.
+
+use std::sync::Arc;
+
+use bytemuck::Pod;
+use wgpu::util::DeviceExt;
+
+use crate::gpu::{workgroup_grid, GpuContext, PooledBuffer, ShaderSpec};
+
+use super::constants::{
+    FAR, LOW_PASS, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, NEAR, QUAT_EPS, TILE,
+};
+
+/// Threads per workgroup of the scan's first level, and elements per thread.
+pub const SCAN_WG: u32 = 256;
+pub const SCAN_ITEMS: u32 = 4;
+/// Threads per workgroup of the radix sort passes.
+pub const SORT_WG: u32 = 64;
+/// Threads per workgroup of the other 1D kernels.
+pub const WG: u32 = 256;
+
+const PROJECT: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/project_common.wgsl"),
+    include_str!("../shaders/splat/project.wgsl"),
+);
+const PROJECT_BACKWARD: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/project_common.wgsl"),
+    include_str!("../shaders/splat/project_backward.wgsl"),
+);
+const BLEND: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/blend.wgsl"),
+);
+const BLEND_BACKWARD_FLOAT: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/atomic_float.wgsl"),
+    include_str!("../shaders/splat/blend_backward.wgsl"),
+);
+const BLEND_BACKWARD_CAS: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/atomic_cas.wgsl"),
+    include_str!("../shaders/splat/blend_backward.wgsl"),
+);
+
+/// A WGSL f32 literal.
+fn f32_literal(v: f64) -> String {
+    format!("{:?}f", v as f32)
+}
+
+/// `spec` plus every constant of the contract.
+fn with_contract(spec: ShaderSpec) -> ShaderSpec {
+    spec.with("NEAR", f32_literal(NEAR))
+        .with("FAR", f32_literal(FAR))
+        .with("LOW_PASS", f32_literal(LOW_PASS))
+        .with("MIN_ALPHA", f32_literal(MIN_ALPHA))
+        .with("MAX_ALPHA", f32_literal(MAX_ALPHA))
+        .with("MIN_TRANSMITTANCE", f32_literal(MIN_TRANSMITTANCE))
+        .with("QUAT_EPS", f32_literal(QUAT_EPS))
+        .with("TILE", format!("{TILE}u"))
+}
+
+/// What a per-pixel kernel is compiled for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PixelVariant {
+    pub channels: usize,
+    pub depth: bool,
+}
+
+impl PixelVariant {
+    fn apply(self, spec: ShaderSpec) -> ShaderSpec {
+        with_contract(spec)
+            .with("CHANNELS", format!("{}u", self.channels))
+            .with("WITH_DEPTH", self.depth)
+    }
+}
+
+pub fn project() -> ShaderSpec {
+    with_contract(ShaderSpec::new("splat_project", PROJECT, "main"))
+}
+
+pub fn project_backward() -> ShaderSpec {
+    with_contract(ShaderSpec::new(
+        "splat_project_backward",
+        PROJECT_BACKWARD,
+        "main",
+    ))
+}
+
+pub fn blend(variant: PixelVariant) -> ShaderSpec {
+    variant.apply(ShaderSpec::new("splat_blend", BLEND, "main"))
+}
+
+/// Blend backward accumulating with native f32 atomics, or with a compare-and-swap loop.
+pub fn blend_backward(variant: PixelVariant, float_atomics: bool) -> ShaderSpec {
+    let (name, source) = if float_atomics {
+        ("splat_blend_backward_f32", BLEND_BACKWARD_FLOAT)
+    } else {
+        ("splat_blend_backward_cas", BLEND_BACKWARD_CAS)
+    };
+    variant.apply(ShaderSpec::new(name, source, "main"))
+}
+
+fn scan_spec(name: &'static str, source: &'static str) -> ShaderSpec {
+    ShaderSpec::new(name, source, "main")
+        .with("WG", format!("{SCAN_WG}u"))
+        .with("ITEMS", format!("{SCAN_ITEMS}u"))
+}
+
+pub fn scan_block() -> ShaderSpec {
+    scan_spec(
+        "splat_scan_block",
+        include_str!("../shaders/splat/scan_block.wgsl"),
+    )
+}
+
+pub fn scan_add() -> ShaderSpec {
+    scan_spec(
+        "splat_scan_add",
+        include_str!("../shaders/splat/scan_add.wgsl"),
+    )
+}
+
+pub fn radix_count(bits: u32) -> ShaderSpec {
+    ShaderSpec::new(
+        "splat_radix_count",
+        include_str!("../shaders/splat/radix_count.wgsl"),
+        "main",
+    )
+    .with("BITS", format!("{bits}u"))
+}
+
+pub fn radix_scatter(bits: u32) -> ShaderSpec {
+    ShaderSpec::new(
+        "splat_radix_scatter",
+        include_str!("../shaders/splat/radix_scatter.wgsl"),
+        "main",
+    )
+    .with("BITS", format!("{bits}u"))
+}
+
+pub fn tile_counts() -> ShaderSpec {
+    ShaderSpec::new(
+        "splat_tile_counts",
+        include_str!("../shaders/splat/tile_counts.wgsl"),
+        "main",
+    )
+}
+
+pub fn emit() -> ShaderSpec {
+    ShaderSpec::new(
+        "splat_emit",
+        include_str!("../shaders/splat/emit.wgsl"),
+        "main",
+    )
+}
+
+pub fn tile_ranges() -> ShaderSpec {
+    ShaderSpec::new(
+        "splat_tile_ranges",
+        include_str!("../shaders/splat/tile_ranges.wgsl"),
+        "main",
+    )
+}
+
+/// A small uniform buffer holding `value`, zero-padded to a multiple of 16 bytes (the
+/// granularity of uniform layouts).
+pub fn uniform<T: Pod>(ctx: &GpuContext, value: &T) -> wgpu::Buffer {
+    let mut contents = bytemuck::bytes_of(value).to_vec();
+    contents.resize(contents.len().next_multiple_of(16), 0);
+    ctx.device
+        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("splat-params"),
+            contents: &contents,
+            usage: wgpu::BufferUsages::UNIFORM,
+        })
+}
+
+/// Records one dispatch of `spec` over `workgroups` workgroups (folded into 2D when needed),
+/// binding `bindings` as `(binding number, resource)` in group 0.
+pub fn dispatch(
+    ctx: &GpuContext,
+    encoder: &mut wgpu::CommandEncoder,
+    spec: &ShaderSpec,
+    bindings: &[(u32, wgpu::BindingResource<'_>)],
+    workgroups: u32,
+) {
+    let pipeline: Arc<wgpu::ComputePipeline> = ctx.pipelines.get(&ctx.device, spec);
+    let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
+        .iter()
+        .map(|(binding, resource)| wgpu::BindGroupEntry {
+            binding: *binding,
+            resource: resource.clone(),
+        })
+        .collect();
+    let bind = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(spec.name),
+        layout: &pipeline.get_bind_group_layout(0),
+        entries: &entries,
+    });
+    let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+        label: Some(spec.name),
+        timestamp_writes: None,
+    });
+    pass.set_pipeline(&pipeline);
+    pass.set_bind_group(0, &bind, &[]);
+    let (x, y, z) = workgroup_grid(workgroups);
+    pass.dispatch_workgroups(x, y, z);
+}
+
+/// Workgroups of `size` threads covering `threads` threads.
+pub fn groups(threads: u32, size: u32) -> u32 {
+    threads.div_ceil(size)
+}
+
+/// A binding of the requested part of `buf`, at least 32 bytes: empty arrays (N = 0, no
+/// pairs) must still satisfy the minimum binding size of a vec4 array.
+pub fn storage(buf: &PooledBuffer) -> wgpu::BindingResource<'_> {
+    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+        buffer: &buf.buffer,
+        offset: 0,
+        size: wgpu::BufferSize::new(buf.size.max(32)),
+    })
+}

@@ -1,0 +1,24 @@
+//! Differentiable Gaussian rasterizer: WGSL kernels, host code, and the f64 CPU reference.
+//!
+//! The maths every implementation follows is the rasterizer contract
+//! (`/work/notes/raster_contract.md`); its constants live in [`constants`]. The GPU path is
+//! [`forward`] then [`backward`]; [`reference`] is the same maths on the CPU in f64.
+
+mod backward;
+pub mod constants;
+mod forward;
+mod frame;
+mod kernels;
+pub mod reference;
+mod scan;
+mod sort;
+pub mod types;
+
+#[cfg(test)]
+mod tests;
+
+pub use backward::{backward, Accumulation};
+pub use forward::{forward, ForwardState};
+pub use types::{
+    Camera, GaussianGradients, Gaussians, OutputGradients, RenderOptions, RenderOutput,
+};

@@ -1,0 +1,156 @@
+"""Differentiable Gaussian rasterization: a torch.autograd.Function over the wgpu kernels.
+
+    out = rasterize(means, quats, log_scales, opacity_logits, features, camera)
+    out.features  [H,W,C] = sum_i w_i f_i + T_final * background
+    out.alpha     [H,W]   = 1 - T_final
+    out.depth     [H,W]   = sum_i w_i z_i (camera-space z), only with depth=True
+with w_i = alpha_i T_i, opacity = sigmoid(opacity_logits), scale = exp(log_scales) and
+quaternions (w, x, y, z), unnormalised. The maths is the rasterizer contract
+(/work/notes/raster_contract.md); gear.splat_reference is the same in pure torch.
+
+Inputs are float32 CPU tensors; wrong shapes or dtypes raise an error naming the argument.
+Non-finite Gaussian values are not errors: such Gaussians are culled (zero output, zero grad).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from gear import _core
+from gear.camera import Camera
+
+__all__ = ["Camera", "RenderOutput", "rasterize"]
+
+MAX_CHANNELS = 64
+
+
+@dataclass
+class RenderOutput:
+    """Rendered images (torch tensors): features [H,W,C], alpha [H,W], depth [H,W] or None."""
+
+    features: Tensor
+    alpha: Tensor
+    depth: Tensor | None = None
+
+
+def _check_tensor(value: Any, name: str, shape: tuple[int | str, ...]) -> Tensor:
+    """A float32 CPU tensor of `shape` (ints fixed, strings free) or a clear error."""
+    spelled = "[" + ", ".join(str(d) for d in shape) + "]"
+    if not isinstance(value, Tensor):
+        raise TypeError(f"'{name}' must be a torch.Tensor of shape {spelled}, "
+                        f"got {type(value).__name__}")
+    if value.dtype != torch.float32:
+        raise TypeError(f"'{name}' must be float32, got {value.dtype}")
+    if value.device.type != "cpu":
+        raise ValueError(f"'{name}' must be on the CPU, got device {value.device}")
+    if value.dim() != len(shape) or any(
+        isinstance(want, int) and got != want for got, want in zip(value.shape, shape, strict=True)
+    ):
+        raise ValueError(f"'{name}' must have shape {spelled}, got {list(value.shape)}")
+    return value
+
+
+def _check_inputs(
+    means: Tensor,
+    quats: Tensor,
+    log_scales: Tensor,
+    opacity_logits: Tensor,
+    features: Tensor,
+    camera: Camera,
+    background: Tensor | None,
+) -> Tensor:
+    """Validates every argument; returns the background (zeros when None)."""
+    n = _check_tensor(means, "means", ("N", 3)).shape[0]
+    _check_tensor(quats, "quats", (n, 4))
+    _check_tensor(log_scales, "log_scales", (n, 3))
+    _check_tensor(opacity_logits, "opacity_logits", (n,))
+    channels = _check_tensor(features, "features", (n, "C")).shape[1]
+    if not 1 <= channels <= MAX_CHANNELS:
+        raise ValueError(f"'features' must have 1..{MAX_CHANNELS} channels, got {channels}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"'camera' must be a gear.splat.Camera, got {type(camera).__name__}")
+    intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)
+    if not (np.isfinite(camera.world_to_cam).all() and np.isfinite(intrinsics).all()):
+        raise ValueError("'camera' has non-finite values")
+    if background is None:
+        return torch.zeros(channels, dtype=torch.float32)
+    _check_tensor(background, "background", (channels,))
+    if not torch.isfinite(background).all():
+        raise ValueError("'background' has non-finite values")
+    return background
+
+
+def _numpy(t: Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+class _Rasterize(torch.autograd.Function):
+    """Outputs (features, alpha) or (features, alpha, depth); gradients to the five arrays."""
+
+    @staticmethod
+    def forward(
+        ctx: Any,
+        means: Tensor,
+        quats: Tensor,
+        log_scales: Tensor,
+        opacity_logits: Tensor,
+        features: Tensor,
+        camera: Camera,
+        background: Tensor,
+        depth: bool,
+    ) -> tuple[Tensor, ...]:
+        image, alpha, depth_image, state = _core.rasterize_forward(
+            *(_numpy(t) for t in (means, quats, log_scales, opacity_logits, features)),
+            camera.world_to_cam.astype(np.float32),
+            (camera.fx, camera.fy, camera.cx, camera.cy),
+            camera.width,
+            camera.height,
+            _numpy(background),
+            depth,
+        )
+        ctx.state = state
+        ctx.depth = depth
+        outputs = (torch.from_numpy(image), torch.from_numpy(alpha))
+        return (*outputs, torch.from_numpy(depth_image)) if depth else outputs
+
+    @staticmethod
+    def backward(ctx: Any, *grads: Tensor) -> tuple[Tensor | None, ...]:
+        grad_depth = _numpy(grads[2].float()) if ctx.depth else None
+        arrays = _core.rasterize_backward(
+            ctx.state, _numpy(grads[0].float()), _numpy(grads[1].float()), grad_depth
+        )
+        wanted = ctx.needs_input_grad[:5]
+        input_grads = tuple(
+            torch.from_numpy(g) if need else None for g, need in zip(arrays, wanted, strict=True)
+        )
+        return (*input_grads, None, None, None)
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    log_scales: Tensor,
+    opacity_logits: Tensor,
+    features: Tensor,
+    camera: Camera,
+    background: Tensor | None = None,
+    depth: bool = False,
+) -> RenderOutput:
+    """Renders N Gaussians seen by `camera` on the GPU (see the module docstring).
+
+    means [N,3], quats [N,4] (w, x, y, z), log_scales [N,3], opacity_logits [N], features
+    [N,C] (1 <= C <= 64), background [C] (None: zeros): float32 CPU tensors. Gradients flow to
+    the five Gaussian arrays that require them.
+    """
+    background = _check_inputs(
+        means, quats, log_scales, opacity_logits, features, camera, background
+    )
+    outputs = _Rasterize.apply(
+        means, quats, log_scales, opacity_logits, features, camera, background, bool(depth)
+    )
+    return RenderOutput(outputs[0], outputs[1], outputs[2] if depth else None)
