@@ -75,7 +75,10 @@ def rasterize(
     count = tw * th * visible
     tris = torch.nonzero(count).squeeze(1)
     count = count[tris]
-    tri = _Triangles(a, b, c, inv_z, bx0, bx1, by0, by1, tx0, ty0, tw)
+    tri = _Triangles(
+        torch.cat([a, b, c, inv_z], 1),
+        torch.stack([bx0, bx1, by0, by1, tx0, ty0, tw], 1),
+    )
 
     zbuf = torch.full((height * width,), _NO_HIT, dtype=torch.int64)
     ends = torch.cumsum(count, 0)
@@ -110,64 +113,56 @@ def rasterize(
 
 @dataclass
 class _Triangles:
-    """Per-triangle setup: normalised edge functions, 1/z per corner, pixel and tile boxes."""
+    """Per-triangle setup, packed so that one gather fetches everything a stage needs."""
 
-    a: torch.Tensor  # [F,3] edge-function x coefficients (inside >= 0, summing to 1)
-    b: torch.Tensor
-    c: torch.Tensor
-    inv_z: torch.Tensor  # [F,3]
-    bx0: torch.Tensor  # [F] inclusive pixel bounding box, clipped to the image
-    bx1: torch.Tensor
-    by0: torch.Tensor
-    by1: torch.Tensor
-    tx0: torch.Tensor  # [F] first tile and tile-box width
-    ty0: torch.Tensor
-    tw: torch.Tensor
+    coef: torch.Tensor  # [F,12] float: edge functions a(3), b(3), c(3) (inside >= 0, summing
+    # to 1), then 1/z of the three corners
+    box: torch.Tensor  # [F,7] int64: pixel box x0, x1, y0, y1 (inclusive, clipped), first
+    # tile tx0, ty0 and the tile-box width
+
+
+def _expand(count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """For items with `count` sub-items each: (item index, index within the item) per sub-item."""
+    item = torch.repeat_interleave(torch.arange(len(count)), count)
+    first = torch.cumsum(count, 0) - count
+    return item, torch.arange(len(item), dtype=torch.int64) - first.index_select(0, item)
 
 
 def _scatter_chunk(
-    zbuf: torch.Tensor,
-    tris: torch.Tensor,
-    count: torch.Tensor,
-    tri: _Triangles,
-    width: int,
+    zbuf: torch.Tensor, tris: torch.Tensor, count: torch.Tensor, tri: _Triangles, width: int
 ) -> None:
     """z-test the pixels of `tris` into `zbuf`: first discard tiles that the triangle cannot
     touch (an edge function negative at all four tile corners), then test each pixel of the
-    remaining tiles."""
-    t = torch.repeat_interleave(tris, count)
-    first = torch.cumsum(count, 0) - count
-    local = torch.arange(len(t), dtype=torch.int64) - torch.repeat_interleave(first, count)
-    w = tri.tw[t]
-    x0 = (tri.tx0[t] + local % w) * TILE
-    y0 = (tri.ty0[t] + torch.div(local, w, rounding_mode="floor")) * TILE
-    a, b, c = tri.a[t], tri.b[t], tri.c[t]
+    remaining tiles that lies in the triangle's bounding box."""
+    item, local = _expand(count)
+    t = tris.index_select(0, item)
+    box = tri.box.index_select(0, t)
+    x0 = (box[:, 4] + local % box[:, 6]) * TILE
+    y0 = (box[:, 5] + torch.div(local, box[:, 6], rounding_mode="floor")) * TILE
+    coef = tri.coef.index_select(0, t)
+    a, b, c = coef[:, 0:3], coef[:, 3:6], coef[:, 6:9]
     # Max of each edge function over the tile's pixel centres is at one of its corners.
     xs = torch.where(a > 0, x0[:, None] + (TILE - 0.5), x0[:, None] + 0.5)
     ys = torch.where(b > 0, y0[:, None] + (TILE - 0.5), y0[:, None] + 0.5)
-    keep = ((a * xs + b * ys + c) >= _EDGE_EPS).all(1)
-    t, x0, y0 = t[keep], x0[keep], y0[keep]
+    keep = torch.nonzero(((a * xs + b * ys + c) >= _EDGE_EPS).all(1)).squeeze(1)
+    t, box = t.index_select(0, keep), box.index_select(0, keep)
+    x0, y0 = x0.index_select(0, keep), y0.index_select(0, keep)
 
-    # Pixels of each kept tile that lie inside the triangle's bounding box (tiny triangles
-    # cost only their few pixels).
-    rx0, ry0 = torch.maximum(x0, tri.bx0[t]), torch.maximum(y0, tri.by0[t])
-    rw = torch.minimum(x0 + TILE - 1, tri.bx1[t]) - rx0 + 1
-    rh = torch.minimum(y0 + TILE - 1, tri.by1[t]) - ry0 + 1
-    n = rw * rh
-    pair = torch.repeat_interleave(torch.arange(len(t)), n)
-    local = torch.arange(len(pair), dtype=torch.int64) - torch.repeat_interleave(
-        torch.cumsum(n, 0) - n, n
-    )
-    w = rw[pair]
-    ix = rx0[pair] + local % w
-    iy = ry0[pair] + torch.div(local, w, rounding_mode="floor")
-    t = t[pair]
-    sx = ix.to(torch.float32) + 0.5
-    sy = iy.to(torch.float32) + 0.5
-    lin = tri.a[t] * sx[:, None] + tri.b[t] * sy[:, None] + tri.c[t]  # screen barycentrics
-    inside = (lin >= _EDGE_EPS).all(1)
-    inv_depth = (lin * tri.inv_z[t]).sum(1)
-    inside &= inv_depth > 0
-    depth = 1.0 / inv_depth[inside]
-    key = (depth.view(torch.int32).to(torch.int64) << 32) | t[inside]
-    zbuf.scatter_reduce_(0, (iy * width + ix)[inside], key, reduce="amin")
+    # The kept tiles' pixels inside the bounding box (tiny triangles cost only their pixels).
+    rx0, ry0 = torch.maximum(x0, box[:, 0]), torch.maximum(y0, box[:, 2])
+    rw = torch.minimum(x0 + TILE - 1, box[:, 1]) - rx0 + 1
+    rh = torch.minimum(y0 + TILE - 1, box[:, 3]) - ry0 + 1
+    item, local = _expand(rw * rh)
+    rect = torch.stack([rx0, ry0, rw, t], 1).index_select(0, item)
+    ix = rect[:, 0] + local % rect[:, 2]
+    iy = rect[:, 1] + torch.div(local, rect[:, 2], rounding_mode="floor")
+    t = rect[:, 3]
+    coef = tri.coef.index_select(0, t)
+    sx = ix.to(torch.float32)[:, None] + 0.5
+    sy = iy.to(torch.float32)[:, None] + 0.5
+    lin = coef[:, 0:3] * sx + coef[:, 3:6] * sy + coef[:, 6:9]  # screen barycentrics
+    inv_depth = (lin * coef[:, 9:12]).sum(1)
+    inside = (lin >= _EDGE_EPS).all(1) & (inv_depth > 0)
+    depth_bits = (1.0 / inv_depth.clamp(min=1e-30)).view(torch.int32).to(torch.int64)
+    key = torch.where(inside, (depth_bits << 32) | t, _NO_HIT)
+    zbuf.scatter_reduce_(0, iy * width + ix, key, reduce="amin")
