@@ -1,0 +1,162 @@
+"""Training configuration: every hyperparameter of the method (METHOD.md §2-§4) in one dataclass.
+
+Table S1 values are the defaults of the `full` profile. `fast` and `quick` rescale the schedule
+(iteration counts and the iterations at which things happen) but keep every loss weight and
+threshold. A JSON file (`--config FILE`) overrides any field; the resolved config is written to
+the output folder as config.json.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+SCHEDULES = ("em", "joint", "em-refine")
+PROFILES = ("quick", "fast", "full")
+
+
+@dataclass
+class TrainConfig:
+    profile: str = "full"
+    seed: int = 0
+    schedule: str = "em"  # em | joint (no alternation) | em-refine (joint, then EM)
+    num_parts: int | None = None  # K including the static part; None = estimated from the data
+
+    # --- Table S1: initialisation (stage 2) ---
+    voxel_size: float | None = None  # None = adaptive: 0.1 one movable part / 0.01 several
+    dilation_radius: int = 1
+
+    # --- Table S1: training loop ---
+    stage1_iterations: int = 30_000  # per state
+    stage3_iterations: int = 30_000
+    em_interval: int = 500  # E-step and M-step length (one field: the paper studies 50..3000)
+    knn_neighbors: int = 3
+    joint_classify_iteration: int = 10_000  # stage-3 iteration
+    revolute_eps_deg: float = 10.0
+    em_refine_joint_iterations: int = 10_000  # em-refine: joint optimisation before EM starts
+
+    # --- Table S1: loss weights ---
+    lambda_dssim: float = 0.2
+    lambda_depth: float = 1.0
+    lambda_sam: float = 0.1
+    lambda_knn: float = 0.1
+    lambda_opacity: float = 0.1  # opacity binarisation BCE
+    lambda_anchor: float = 1.0  # canonical anchor vs the frozen stage-1 model
+    static_class_weight: float = 1.2
+
+    # --- A.2: part-aware refinements ---
+    gamma_prism: float = 4.0
+    small_part_threshold: int = 2000  # N_thresh: parts below keep their opacity at reset
+    pseudo_min_conf: float = 0.5
+    pseudo_min_gap: float = 0.2
+    pseudo_min_area: int = 50
+
+    # --- densification (stage-1 iterations; stage 3 uses the stage3_* window) ---
+    densify_from: int = 500
+    densify_until: int = 15_000
+    densify_interval: int = 100
+    densify_grad_threshold: float = 2e-4
+    stage3_densify_until: int = 15_000
+    opacity_reset_interval: int = 3000
+    percent_dense: float = 0.01  # clone below this fraction of the scene extent, split above
+    prune_opacity: float = 0.005
+    prune_max_scale: float = 0.1  # fraction of the scene extent
+    max_gaussians: int = 1_000_000
+
+    # --- initialisation (stage 1) ---
+    init_voxel_fraction: float = 0.005  # depth back-projection downsampling, x scene extent
+    init_max_points: int = 100_000
+    random_init_points: int = 100_000  # visual-hull candidates when the scene has no depth
+
+    # --- learning rates (Adam) ---
+    lr_means: float = 1.6e-4  # x scene extent, decays exponentially to lr_means_final
+    lr_means_final: float = 1.6e-6
+    lr_quats: float = 1e-3
+    lr_log_scales: float = 5e-3
+    lr_opacity: float = 0.05
+    lr_colors: float = 5e-3
+    lr_logits: float = 0.05
+    lr_motion_rot: float = 1e-3
+    lr_motion_trans: float = 1e-3  # x scene extent
+
+    # --- bookkeeping ---
+    checkpoint_every: int = 5000
+    log_every: int = 10
+    mesh_voxel: float = 0.004
+    mesh_trunc: float = 0.02
+
+    def __post_init__(self) -> None:
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
+        if self.profile not in PROFILES:
+            raise ValueError(f"profile must be one of {PROFILES}, got {self.profile!r}")
+        if self.num_parts is not None and self.num_parts < 1:
+            raise ValueError(f"num_parts must be >= 1 (static part included), got {self.num_parts}")
+        for name in ("stage1_iterations", "stage3_iterations", "em_interval", "densify_interval",
+                     "opacity_reset_interval", "checkpoint_every", "log_every", "knn_neighbors"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=2)
+
+    def save(self, path: Path) -> None:
+        Path(path).write_text(self.to_json() + "\n")
+
+    def replace(self, **changes: Any) -> TrainConfig:
+        return dataclasses.replace(self, **changes)
+
+
+def _profile_changes(profile: str) -> dict[str, Any]:
+    if profile == "full":
+        return {}
+    if profile == "fast":  # the paper's fast version: 10k + 10k, events rescaled by 1/3
+        return dict(
+            stage1_iterations=10_000, stage3_iterations=10_000, densify_until=5000,
+            stage3_densify_until=5000, joint_classify_iteration=3333,
+            em_refine_joint_iterations=3333,
+        )
+    if profile == "quick":  # demo / CI: a few hundred iterations at small resolution
+        return dict(
+            stage1_iterations=500, stage3_iterations=600, em_interval=50,
+            densify_from=100, densify_until=350, densify_interval=50,
+            stage3_densify_until=300, opacity_reset_interval=100_000,
+            joint_classify_iteration=300, em_refine_joint_iterations=200,
+            init_max_points=20_000, random_init_points=40_000, checkpoint_every=250,
+            mesh_voxel=0.01, mesh_trunc=0.04,
+            lr_means=1.6e-3, lr_means_final=1.6e-5, lr_colors=1e-2, lr_motion_rot=3e-3,
+            lr_motion_trans=3e-3,
+        )
+    raise ValueError(f"unknown profile {profile!r}; choose one of {PROFILES}")
+
+
+def make_config(profile: str = "full", overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """The profile's config with `overrides` (field -> value) applied on top."""
+    config = TrainConfig(profile=profile, **_profile_changes(profile))
+    return config.replace(**(overrides or {}))
+
+
+def load_overrides(path: Path) -> dict[str, Any]:
+    """Reads a JSON object of config fields; unknown names are an error naming the file."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError as err:
+        raise ValueError(f"{path}: config file not found") from err
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from err
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object of config fields")
+    known = {f.name for f in fields(TrainConfig)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ValueError(f"{path}: unknown config fields {unknown}")
+    return data
+
+
+def load_config(path: Path) -> TrainConfig:
+    """A config saved by `TrainConfig.save` (e.g. OUT_DIR/config.json)."""
+    return TrainConfig(**load_overrides(path))

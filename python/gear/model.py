@@ -1,0 +1,370 @@
+"""Gaussians with their Adam state: render, densify (clone/split), prune, opacity reset, init.
+
+Parameters live in `Gaussians.params` (leaf tensors, one Adam param group each):
+means [N,3], quats [N,4] (w,x,y,z), log_scales [N,3], opacity [N] (logits), colors [N,3]
+(logits of straight RGB) and, in stage 3, logits [N,K] (part assignment). Every edit that
+changes N (densify, prune) edits the Adam moments with the same index map, so optimizer state
+stays aligned with its Gaussian.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from gear.camera import Camera
+
+_SPLIT_COPIES = 2
+_SPLIT_SHRINK = 0.8 * _SPLIT_COPIES  # split children are this much smaller than the parent
+_RESET_OPACITY = 0.01
+_INIT_OPACITY = 0.1
+
+
+@functools.cache
+def rasterizer() -> Callable:
+    """The renderer every render in training goes through: the GPU kernels when built, else
+    the dense torch reference (same signature and maths, only for tiny scenes)."""
+    try:
+        from gear.splat import rasterize
+    except ImportError:
+        from gear.splat_reference import rasterize_dense as rasterize
+    return rasterize
+
+
+def render(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity: torch.Tensor,
+    features: torch.Tensor,
+    camera: Camera,
+    background: torch.Tensor,
+    depth: bool = False,
+) -> Any:  # RenderOutput(.features [H,W,C], .alpha [H,W], .depth [H,W] | None)
+    return rasterizer()(
+        means, quats, log_scales, opacity, features, camera, background=background, depth=depth
+    )
+
+
+def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
+    """Indices [N,k] of each point's k nearest other points (k clipped to N-1)."""
+    pts = np.ascontiguousarray(points, dtype=np.float32)
+    k = min(k, len(pts) - 1)
+    if k < 1:
+        return np.zeros((len(pts), 0), dtype=np.int64)
+    try:
+        from gear.geometry import knn
+    except ImportError:  # before the Rust KNN is built: same answer from scipy
+        from scipy.spatial import cKDTree
+
+        _, idx = cKDTree(pts).query(pts, k=k + 1)
+        return np.asarray(idx[:, 1:], dtype=np.int64)
+    return np.asarray(knn(pts, k), dtype=np.int64)
+
+
+def _logit(p: torch.Tensor | float) -> torch.Tensor:
+    p = torch.as_tensor(p, dtype=torch.float32)
+    return torch.log(p / (1 - p))
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """[N,4] (w,x,y,z), any norm -> [N,3,3] rotation matrices (the rasterizer's formula)."""
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(*q.shape[:-1], 3, 3)
+
+
+class Gaussians:
+    def __init__(self, params: dict[str, torch.Tensor]) -> None:
+        self.params = {
+            name: t.detach().clone().float().requires_grad_(True) for name, t in params.items()
+        }
+        self.optimizer: torch.optim.Adam | None = None
+        self.reset_stats()
+
+    # --- construction ---
+    @classmethod
+    def from_points(cls, points: np.ndarray, colors: np.ndarray) -> Gaussians:
+        """Isotropic Gaussians at `points`, scale = mean distance to 3 nearest neighbours."""
+        pts = torch.as_tensor(np.asarray(points, dtype=np.float32))
+        n = len(pts)
+        if n < 4:
+            raise ValueError(f"initialisation found only {n} points; the scene masks are empty?")
+        nbr = torch.as_tensor(nearest_neighbours(points, 3))
+        dist = (pts[nbr] - pts[:, None]).norm(dim=-1).mean(dim=1).clamp_min(1e-7)
+        rgb = torch.as_tensor(np.asarray(colors, dtype=np.float32)).clamp(0.02, 0.98)
+        return cls(
+            dict(
+                means=pts,
+                quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1),
+                log_scales=torch.log(dist)[:, None].repeat(1, 3),
+                opacity=torch.full((n,), float(_logit(_INIT_OPACITY))),
+                colors=torch.log(rgb / (1 - rgb)),
+            )
+        )
+
+    def clone(self) -> Gaussians:
+        """An independent copy of the parameters (no optimizer)."""
+        return Gaussians(self.params)
+
+    # --- accessors ---
+    def __len__(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    def __getitem__(self, name: str) -> torch.Tensor:
+        return self.params[name]
+
+    @property
+    def num_parts(self) -> int:
+        return int(self.params["logits"].shape[1]) if "logits" in self.params else 1
+
+    def rgb(self) -> torch.Tensor:
+        return torch.sigmoid(self.params["colors"])
+
+    def part_ids(self) -> torch.Tensor:
+        """Hard part id per Gaussian (argmax of logits; all 0 without logits)."""
+        if "logits" not in self.params:
+            return torch.zeros(len(self), dtype=torch.int64)
+        return self.params["logits"].detach().argmax(dim=1)
+
+    # --- optimizer ---
+    def setup_optimizer(self, lrs: dict[str, float]) -> None:
+        groups = [{"params": [t], "name": n, "lr": lrs[n]} for n, t in self.params.items()]
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+    def set_lr(self, name: str, lr: float) -> None:
+        for group in self._optimizer().param_groups:
+            if group["name"] == name:
+                group["lr"] = lr
+
+    def _optimizer(self) -> torch.optim.Adam:
+        if self.optimizer is None:
+            raise RuntimeError("Gaussians.setup_optimizer must be called first")
+        return self.optimizer
+
+    def add_param(self, name: str, value: torch.Tensor, lr: float) -> None:
+        """A new per-Gaussian parameter (e.g. part logits) with its own Adam group."""
+        if value.shape[0] != len(self):
+            raise ValueError(f"{name}: {value.shape[0]} rows for {len(self)} Gaussians")
+        t = value.detach().clone().float().requires_grad_(True)
+        self.params[name] = t
+        if self.optimizer is not None:
+            self.optimizer.add_param_group({"params": [t], "name": name, "lr": lr})
+
+    def _edit(self, edit: Callable[[str, torch.Tensor, bool], torch.Tensor]) -> None:
+        """Replaces every parameter by edit(name, tensor, is_moment); Adam moments follow."""
+        state = self.optimizer.state if self.optimizer is not None else {}
+        for name, old in list(self.params.items()):
+            new = edit(name, old.detach(), False).contiguous().requires_grad_(True)
+            self.params[name] = new
+            moments = state.pop(old, None)
+            if moments is not None:
+                for key in ("exp_avg", "exp_avg_sq"):
+                    moments[key] = edit(name, moments[key], True).contiguous()
+                state[new] = moments
+        if self.optimizer is not None:
+            for group in self.optimizer.param_groups:
+                group["params"] = [self.params[group["name"]]]
+        self.reset_stats()
+
+    def keep(self, mask: torch.Tensor) -> None:
+        """Keeps the Gaussians where `mask` [N] is true (prune the rest)."""
+        self._edit(lambda _name, t, _m: t[mask])
+
+    def append(self, extra: dict[str, torch.Tensor]) -> None:
+        """Adds Gaussians (every parameter given); their Adam moments start at zero."""
+        if set(extra) != set(self.params):
+            raise ValueError(f"append needs {sorted(self.params)}, got {sorted(extra)}")
+        self._edit(
+            lambda name, t, moment: torch.cat(
+                [t, torch.zeros_like(extra[name]) if moment else extra[name].detach().float()]
+            )
+        )
+
+    # --- densification statistics ---
+    def reset_stats(self) -> None:
+        n = len(self)
+        self.grad_accum = torch.zeros(n)
+        self.grad_count = torch.zeros(n)
+
+    @torch.no_grad()
+    def accumulate_screen_grads(self, rendered_means: torch.Tensor, camera: Camera) -> None:
+        """Adds the screen-space (NDC) norm of dL/d(projected centre) of each visible Gaussian.
+
+        `rendered_means` are the positions that were rendered (deformed in stage 3) with their
+        .grad retained; the projected-centre gradient follows from the camera-space one as
+        dL/du = dL/dx_cam * z / fx (scaled by W/2 into NDC as the 2e-4 threshold assumes).
+        """
+        grad = rendered_means.grad
+        if grad is None:
+            return
+        rot = torch.as_tensor(camera.world_to_cam[:3, :3], dtype=torch.float32)
+        trans = torch.as_tensor(camera.world_to_cam[:3, 3], dtype=torch.float32)
+        g_cam = grad @ rot.T
+        z = (rendered_means.detach() @ rot.T + trans)[:, 2].clamp_min(1e-6)
+        gx = g_cam[:, 0] * z / camera.fx * 0.5 * camera.width
+        gy = g_cam[:, 1] * z / camera.fy * 0.5 * camera.height
+        visible = grad.abs().sum(dim=1) > 0
+        self.grad_accum[visible] += torch.sqrt(gx * gx + gy * gy)[visible]
+        self.grad_count[visible] += 1
+
+    @torch.no_grad()
+    def densify_and_prune(
+        self,
+        grad_threshold: float,
+        extent: float,
+        percent_dense: float,
+        min_opacity: float,
+        max_scale: float | None,
+        max_gaussians: int,
+        generator: torch.Generator,
+    ) -> dict[str, int]:
+        """Clones small and splits large Gaussians whose mean screen gradient exceeds the
+        threshold, then prunes transparent (and, when `max_scale` is set, huge) ones."""
+        avg = self.grad_accum / self.grad_count.clamp_min(1)
+        hot = avg >= grad_threshold
+        scale = torch.exp(self.params["log_scales"].detach()).max(dim=1).values
+        clone = hot & (scale <= percent_dense * extent)
+        split = hot & ~clone
+        n_new = int(clone.sum()) + _SPLIT_COPIES * int(split.sum())
+        if len(self) + n_new > max_gaussians:
+            clone[:] = False
+            split[:] = False
+            n_new = 0
+        n_before = len(self)
+        extra = {name: t.detach()[clone] for name, t in self.params.items()}
+        if bool(split.any()):
+            children = {
+                name: t.detach()[split].repeat(_SPLIT_COPIES, *([1] * (t.dim() - 1)))
+                for name, t in self.params.items()
+            }
+            parent_scale = torch.exp(children["log_scales"])
+            offset = torch.randn(parent_scale.shape, generator=generator) * parent_scale
+            rot = quat_to_matrix(children["quats"])
+            children["means"] = children["means"] + (rot @ offset[..., None])[..., 0]
+            children["log_scales"] = children["log_scales"] - float(np.log(_SPLIT_SHRINK))
+            extra = {name: torch.cat([extra[name], children[name]]) for name in extra}
+        if n_new:
+            self.append(extra)
+        drop = torch.cat([split, torch.zeros(n_new, dtype=torch.bool)])
+        drop |= torch.sigmoid(self.params["opacity"].detach()) < min_opacity
+        if max_scale is not None:
+            drop |= torch.exp(self.params["log_scales"].detach()).max(dim=1).values > max_scale
+        if bool(drop.all()):  # never prune to nothing: keep the most opaque Gaussian
+            drop[self.params["opacity"].detach().argmax()] = False
+        self.keep(~drop)
+        return dict(cloned=int(clone.sum()), split=int(split.sum()), pruned=int(drop.sum()),
+                    before=n_before, after=len(self))
+
+    def small_part_mask(self, threshold: int) -> torch.Tensor:
+        """Gaussians of movable parts (argmax >= 1) that have fewer than `threshold` members."""
+        ids = self.part_ids()
+        counts = torch.bincount(ids, minlength=self.num_parts)
+        small = counts < threshold
+        small[0] = False
+        return small[ids]
+
+    @torch.no_grad()
+    def reset_opacity(self, protect: torch.Tensor | None = None) -> int:
+        """Opacity := min(o, 0.01) except for `protect`ed Gaussians (their Adam state too)."""
+        target = torch.ones(len(self), dtype=torch.bool)
+        if protect is not None:
+            target &= ~protect
+        logits = self.params["opacity"]
+        logits[target] = torch.minimum(logits[target], _logit(_RESET_OPACITY))
+        if self.optimizer is not None:
+            moments = self.optimizer.state.get(logits)
+            if moments:
+                moments["exp_avg"][target] = 0
+                moments["exp_avg_sq"][target] = 0
+        return int(target.sum())
+
+
+# --- initialisation (stage 1) ---
+def scene_extent(cameras: Sequence[Camera]) -> float:
+    """1.1 x the largest distance of a camera centre from their mean (the 3DGS convention)."""
+    centres = np.stack([c.center for c in cameras])
+    radius = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
+    return 1.1 * max(radius, 1e-3)
+
+
+def _voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel: float):
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return points[first], colors[first]
+
+
+def points_from_depth(
+    views: Sequence, voxel: float, max_points: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Back-projects every view's valid depth inside its object mask; voxel-downsampled."""
+    pts, cols = [], []
+    for view in views:
+        if view.depth is None:
+            continue
+        valid = (view.depth > 0) & (view.alpha > 0.5)
+        pts.append(view.camera.unproject(np.where(valid, view.depth, 0.0)))
+        cols.append(view.rgb[valid])
+    if not pts:
+        raise ValueError("points_from_depth: no view has depth")
+    points, colors = _voxel_downsample(np.concatenate(pts), np.concatenate(cols), voxel)
+    if len(points) > max_points:
+        pick = rng.choice(len(points), max_points, replace=False)
+        points, colors = points[pick], colors[pick]
+    return points.astype(np.float32), colors.astype(np.float32)
+
+
+def _common_view_box(cameras: Sequence[Camera]) -> tuple[np.ndarray, float]:
+    """Centre (the point nearest all optical axes) and half-size of the region every camera
+    sees; makes no assumption about the up axis or the camera layout."""
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for cam in cameras:
+        d = cam.cam_to_world[:3, 2]
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ cam.center
+    centre = np.linalg.lstsq(a, b, rcond=None)[0]
+    half = min(
+        np.linalg.norm(c.center - centre) * np.tan(0.5 * min(c.camera_angle_x, c.camera_angle_y))
+        for c in cameras
+    )
+    return centre, float(half)
+
+
+def points_from_masks(
+    views: Sequence, n_candidates: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Random points in the cameras' common view, kept where (almost) every view that sees
+    them has object alpha: a visual hull. Colour = mean of the views' pixels."""
+    centre, half = _common_view_box([v.camera for v in views])
+    cand = centre + rng.uniform(-half, half, size=(n_candidates, 3))
+    inside = np.zeros(n_candidates)
+    seen = np.zeros(n_candidates)
+    color = np.zeros((n_candidates, 3))
+    for view in views:
+        uv, z = view.camera.project(cand)
+        h, w = view.alpha.shape
+        col = np.floor(uv[:, 0]).astype(np.int64)
+        row = np.floor(uv[:, 1]).astype(np.int64)
+        ok = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        hit = np.zeros(n_candidates, dtype=bool)
+        hit[ok] = view.alpha[row[ok], col[ok]] > 0.5
+        seen += ok
+        inside += hit
+        color[hit] += view.rgb[row[hit], col[hit]]
+    keep = (seen > 0) & (inside >= 0.9 * seen)
+    if keep.sum() < 4:
+        raise ValueError("no point lies inside the object masks of the views; check the alphas")
+    return cand[keep].astype(np.float32), (color[keep] / inside[keep, None]).astype(np.float32)

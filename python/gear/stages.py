@@ -1,0 +1,340 @@
+"""The per-iteration work of stage 1 (per-state reconstruction) and stage 3 (EM refinement).
+
+Each stage is an object with `step(it) -> dict of loss terms` plus `state_dict` /
+`load_state_dict`, so the loop driver in train.py can checkpoint, resume and report progress
+the same way for both. All randomness (view choice, background, split offsets) comes from the
+stage's own torch.Generator, whose state is checkpointed: seeded runs resume identically.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from gear.camera import Camera
+from gear.config import TrainConfig
+from gear.losses import composite, depth_log_l1, opacity_binarisation, photometric
+from gear.model import Gaussians, nearest_neighbours, render, scene_extent
+
+
+class NonFiniteLoss(RuntimeError):
+    def __init__(self, stage: str, iteration: int, term: str) -> None:
+        super().__init__(
+            f"non-finite loss in {stage} at iteration {iteration} (term '{term}'); "
+            "the last good checkpoint is kept"
+        )
+        self.stage, self.iteration, self.term = stage, iteration, term
+
+
+@dataclass
+class TrainView:
+    """One training image as torch tensors (converted once)."""
+
+    camera: Camera
+    rgb: torch.Tensor  # [H,W,3]
+    alpha: torch.Tensor  # [H,W]
+    depth: torch.Tensor | None  # [H,W], 0 = missing
+    regions: np.ndarray | None  # [H,W] int
+
+    @classmethod
+    def from_view(cls, view) -> TrainView:  # noqa: ANN001 (gear.data.View)
+        depth = None if view.depth is None else torch.as_tensor(view.depth, dtype=torch.float32)
+        return cls(
+            view.camera,
+            torch.as_tensor(view.rgb, dtype=torch.float32),
+            torch.as_tensor(view.alpha, dtype=torch.float32),
+            depth,
+            view.regions,
+        )
+
+
+def gaussian_lrs(config: TrainConfig, extent: float) -> dict[str, float]:
+    return dict(
+        means=config.lr_means * extent,
+        quats=config.lr_quats,
+        log_scales=config.lr_log_scales,
+        opacity=config.lr_opacity,
+        colors=config.lr_colors,
+        logits=config.lr_logits,
+    )
+
+
+def means_lr(config: TrainConfig, it: int, total: int) -> float:
+    """Exponential decay from lr_means to lr_means_final over the stage (times the extent)."""
+    f = min(max(it / max(total, 1), 0.0), 1.0)
+    return float(np.exp((1 - f) * np.log(config.lr_means) + f * np.log(config.lr_means_final)))
+
+
+def check_finite(terms: dict[str, torch.Tensor], stage: str, it: int) -> None:
+    for name, value in terms.items():
+        if not bool(torch.isfinite(value).all()):
+            raise NonFiniteLoss(stage, it, name)
+
+
+def _image_terms(out, view: TrainView, background: torch.Tensor, config: TrainConfig):  # noqa: ANN001
+    target = composite(view.rgb, view.alpha, background)
+    terms = {"rgb": photometric(out.features[..., :3], target, config.lambda_dssim)}
+    if view.depth is not None and out.depth is not None:
+        terms["depth"] = config.lambda_depth * depth_log_l1(out.depth, view.depth)
+    return terms
+
+
+class _Stage:
+    name = "stage"
+
+    def __init__(self, config: TrainConfig, seed: int) -> None:
+        self.config = config
+        self.generator = torch.Generator().manual_seed(seed)
+        self.events: list[dict] = []  # densify / reset / classification events for the log
+
+    def _pick(self, views: Sequence[TrainView]) -> TrainView:
+        return views[int(torch.randint(len(views), (1,), generator=self.generator))]
+
+    def _background(self) -> torch.Tensor:
+        return torch.rand(3, generator=self.generator)
+
+    def _maintain(self, g: Gaussians, it: int, densify_until: int, allowed: bool) -> None:
+        """Densify/prune and opacity reset at their configured iterations."""
+        c = self.config
+        if allowed and it > 0 and c.densify_from <= it < densify_until and (
+            it % c.densify_interval == 0
+        ):
+            max_scale = c.prune_max_scale * self.extent if it > c.opacity_reset_interval else None
+            info = g.densify_and_prune(
+                c.densify_grad_threshold, self.extent, c.percent_dense, c.prune_opacity,
+                max_scale, c.max_gaussians, self.generator,
+            )
+            self.events.append({"event": "densify", "iteration": it, **info})
+            self.on_topology_change(g)
+        if it > 0 and it % c.opacity_reset_interval == 0 and it < densify_until:
+            protect = g.small_part_mask(c.small_part_threshold) if g.num_parts > 1 else None
+            n = g.reset_opacity(protect)
+            self.events.append({"event": "opacity_reset", "iteration": it, "reset": n})
+
+    def on_topology_change(self, g: Gaussians) -> None:
+        """Hook: the Gaussians' count changed."""
+
+    def generator_state(self) -> torch.Tensor:
+        return self.generator.get_state()
+
+
+class ReconstructState(_Stage):
+    """Stage 1: an ordinary Gaussian model of one state (METHOD.md §2)."""
+
+    def __init__(
+        self, gaussians: Gaussians, views: Sequence[TrainView], config: TrainConfig, seed: int,
+        state: str,
+    ) -> None:
+        super().__init__(config, seed)
+        self.name = f"stage1-{state}"
+        self.gaussians = gaussians
+        self.views = list(views)
+        self.extent = scene_extent([v.camera for v in self.views])
+        if gaussians.optimizer is None:
+            gaussians.setup_optimizer(gaussian_lrs(config, self.extent))
+        self.total = config.stage1_iterations
+
+    def step(self, it: int) -> dict[str, float]:
+        c, g = self.config, self.gaussians
+        g.set_lr("means", means_lr(c, it, self.total) * self.extent)
+        view = self._pick(self.views)
+        bg = self._background()
+        out = render(
+            g["means"], g["quats"], g["log_scales"], g["opacity"], g.rgb(), view.camera, bg,
+            depth=view.depth is not None,
+        )
+        terms = _image_terms(out, view, bg, c)
+        terms["opacity"] = c.lambda_opacity * opacity_binarisation(g["opacity"])
+        check_finite(terms, self.name, it)
+        loss = sum(terms.values())
+        g.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        g.accumulate_screen_grads(g["means"], view.camera)
+        g.optimizer.step()
+        self._maintain(g, it + 1, c.densify_until, allowed=True)
+        return {k: v.item() for k, v in terms.items()}
+
+    def state_dict(self) -> dict:
+        return {"generator": self.generator_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.generator.set_state(state["generator"])
+
+
+def phase_at(schedule: str, it: int, interval: int, refine_joint: int) -> str:
+    """'E', 'M' (alternation, E first) or 'J' (joint optimisation) at stage-3 iteration `it`."""
+    if schedule == "joint":
+        return "J"
+    if schedule == "em-refine":
+        if it < refine_joint:
+            return "J"
+        it -= refine_joint
+    return "E" if (it // interval) % 2 == 0 else "M"
+
+
+class Refine(_Stage):
+    """Stage 3: canonical Gaussians + part logits + per-part motion (METHOD.md §4)."""
+
+    name = "stage3"
+
+    def __init__(
+        self,
+        gaussians: Gaussians,
+        motion,  # noqa: ANN001 (gear.kinematics.PartMotion)
+        frozen: Gaussians,
+        canonical_views: Sequence[TrainView],
+        target_views: Sequence[TrainView],
+        config: TrainConfig,
+        seed: int,
+    ) -> None:
+        super().__init__(config, seed)
+        self.gaussians, self.motion, self.frozen = gaussians, motion, frozen
+        self.canonical_views = list(canonical_views)
+        self.region_views = [v for v in self.canonical_views if v.regions is not None]
+        self.target_views = list(target_views)
+        self.extent = scene_extent([v.camera for v in self.canonical_views + self.target_views])
+        if gaussians.optimizer is None:
+            gaussians.setup_optimizer(gaussian_lrs(config, self.extent))
+        self.motion_optimizer = self._make_motion_optimizer()
+        self.total = config.stage3_iterations
+        self._neighbours: torch.Tensor | None = None
+        self._anchor_cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
+
+    def _make_motion_optimizer(self) -> torch.optim.Adam:
+        c = self.config
+        return torch.optim.Adam(
+            [
+                {"params": [self.motion.qr], "lr": c.lr_motion_rot},
+                {"params": [self.motion.qd], "lr": c.lr_motion_trans * self.extent},
+            ],
+            eps=1e-15,
+        )
+
+    def on_topology_change(self, g: Gaussians) -> None:
+        self._neighbours = None
+
+    def neighbours(self) -> torch.Tensor:
+        """KNN of the canonical centres, rebuilt lazily after the Gaussians changed."""
+        if self._neighbours is None or len(self._neighbours) != len(self.gaussians):
+            pts = self.gaussians["means"].detach().numpy()
+            self._neighbours = torch.as_tensor(nearest_neighbours(pts, self.config.knn_neighbors))
+        return self._neighbours
+
+    def _anchor(self, view_index: int, view: TrainView):
+        """The frozen stage-1 canonical model seen from a target camera (zero background)."""
+        if view_index not in self._anchor_cache:
+            f = self.frozen
+            with torch.no_grad():
+                out = render(
+                    f["means"], f["quats"], f["log_scales"], f["opacity"], f.rgb(), view.camera,
+                    torch.zeros(3), depth=True,
+                )
+            # Depth supervision only where the frozen model is solid (as 0 = missing in data).
+            depth = torch.where(out.alpha > 0.5, out.depth, 0.0)
+            self._anchor_cache[view_index] = (out.features, out.alpha, depth)
+        return self._anchor_cache[view_index]
+
+    def phase(self, it: int) -> str:
+        c = self.config
+        return phase_at(c.schedule, it, c.em_interval, c.em_refine_joint_iterations)
+
+    def step(self, it: int) -> dict[str, float]:
+        c, g, motion = self.config, self.gaussians, self.motion
+        phase = self.phase(it)
+        if it == c.joint_classify_iteration:
+            self.classify()
+        g.set_lr("means", means_lr(c, it, self.total) * self.extent)
+        qr, qd = motion.motion(1.0)
+        if phase == "E":
+            qr, qd = qr.detach(), qd.detach()
+        logits = g["logits"]
+        if phase == "M":
+            weights = F.one_hot(logits.detach().argmax(dim=1), g.num_parts).float()
+        else:
+            weights = torch.softmax(logits, dim=1)
+
+        from gear.kinematics import deform
+
+        index = int(torch.randint(len(self.target_views), (1,), generator=self.generator))
+        view = self.target_views[index]
+        bg = self._background()
+        means_d, quats_d = deform(g["means"], g["quats"], weights, qr, qd)
+        means_d.retain_grad()
+        rgb = g.rgb()
+        out = render(means_d, quats_d, g["log_scales"], g["opacity"], rgb, view.camera, bg,
+                     depth=view.depth is not None)
+        terms = _image_terms(out, view, bg, c)
+
+        anchor = render(g["means"], g["quats"], g["log_scales"], g["opacity"], rgb, view.camera,
+                        bg, depth=True)
+        frozen_rgb, frozen_alpha, frozen_depth = self._anchor(index, view)
+        anchor_target = frozen_rgb + (1 - frozen_alpha)[..., None] * bg
+        terms["anchor"] = c.lambda_anchor * (
+            photometric(anchor.features, anchor_target, c.lambda_dssim)
+            + c.lambda_depth * depth_log_l1(anchor.depth, frozen_depth)
+        )
+        terms["opacity"] = c.lambda_opacity * opacity_binarisation(g["opacity"])
+        if phase != "M":
+            terms.update(self._segmentation_terms(logits, rgb))
+        check_finite(terms, self.name, it)
+        loss = sum(terms.values())
+        g.optimizer.zero_grad(set_to_none=True)
+        self.motion_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        g.accumulate_screen_grads(means_d, view.camera)
+        g.optimizer.step()
+        if phase != "E":
+            self.motion_optimizer.step()
+        self._maintain(g, it + 1, c.stage3_densify_until, allowed=self.phase(it + 1) != "M")
+        return {k: v.item() for k, v in terms.items()}
+
+    def _segmentation_terms(self, logits: torch.Tensor, rgb: torch.Tensor) -> dict:
+        """E-step: region-voted pseudo-labels on a rendered logit image (CE) + KNN smoothness."""
+        from gear.em import knn_consistency_loss, region_pseudo_labels, sam_ce_loss
+
+        c, g = self.config, self.gaussians
+        terms = {"knn": c.lambda_knn * knn_consistency_loss(logits, self.neighbours())}
+        if not self.region_views:
+            return terms
+        view = self._pick(self.region_views)
+        k = g.num_parts
+        out = render(
+            g["means"], g["quats"], g["log_scales"], g["opacity"],
+            torch.cat([rgb.detach(), logits], dim=1), view.camera, torch.zeros(3 + k),
+        )
+        logit_image = out.features[..., 3:]
+        prob = torch.softmax(logit_image.detach(), dim=-1).numpy()
+        labels = region_pseudo_labels(
+            prob, view.regions, self.motion.prismatic.numpy(), gamma=c.gamma_prism,
+            min_conf=c.pseudo_min_conf, min_gap=c.pseudo_min_gap, min_area=c.pseudo_min_area,
+        )
+        fg = view.alpha > 0.5
+        terms["sam"] = c.lambda_sam * sam_ce_loss(
+            logit_image, torch.as_tensor(labels), fg, static_weight=c.static_class_weight
+        )
+        return terms
+
+    def classify(self) -> None:
+        """Revolute joints below ε become prismatic; the motion optimizer is rebuilt."""
+        from gear.em import classify_joints
+
+        switched = classify_joints(self.motion, eps_deg=self.config.revolute_eps_deg)
+        self.events.append({"event": "joint_classification", "prismatic": list(switched)})
+        if switched:
+            self.motion_optimizer = self._make_motion_optimizer()
+
+    def state_dict(self) -> dict:
+        return {
+            "generator": self.generator_state(),
+            "motion": self.motion.state_dict(),
+            "motion_optimizer": self.motion_optimizer.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.generator.set_state(state["generator"])
+        self.motion.load_state_dict(state["motion"])
+        self.motion_optimizer.load_state_dict(state["motion_optimizer"])
