@@ -36,6 +36,9 @@ class TrainConfig:
     knn_neighbors: int = 3
     joint_classify_iteration: int = 10_000  # stage-3 iteration
     revolute_eps_deg: float = 10.0
+    # [beyond] a joint below ε keeps both readings (hinge, slide, stage-2 hinge) and the one
+    # with the lower photometric + depth loss on the target views wins; False = the paper's rule
+    resolve_ambiguous_joints: bool = True
     em_refine_joint_iterations: int = 10_000  # em-refine: joint optimisation before EM starts
 
     # --- Table S1: loss weights ---

@@ -26,13 +26,17 @@ _INIT_OPACITY = 0.1
 
 @functools.cache
 def rasterizer() -> Callable:
-    """The renderer every render in training goes through: the GPU kernels when built, else
-    the dense torch reference (same signature and maths, only for tiny scenes)."""
-    try:
+    """The renderer every render in training goes through: the GPU kernels when the extension
+    has them, else the torch reference (same signature and maths; slow, for tiny scenes)."""
+    from gear import _core
+
+    if hasattr(_core, "rasterize_forward"):
         from gear.splat import rasterize
-    except ImportError:
-        from gear.splat_reference import rasterize_dense as rasterize
-    return rasterize
+
+        return rasterize
+    from gear.splat_reference import rasterize_dense
+
+    return rasterize_dense
 
 
 def render(
@@ -52,18 +56,13 @@ def render(
 
 def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
     """Indices [N,k] of each point's k nearest other points (k clipped to N-1)."""
+    from gear.geometry import knn
+
     pts = np.ascontiguousarray(points, dtype=np.float32)
     k = min(k, len(pts) - 1)
     if k < 1:
         return np.zeros((len(pts), 0), dtype=np.int64)
-    try:
-        from gear.geometry import knn
-    except ImportError:  # before the Rust KNN is built: same answer from scipy
-        from scipy.spatial import cKDTree
-
-        _, idx = cKDTree(pts).query(pts, k=k + 1)
-        return np.asarray(idx[:, 1:], dtype=np.int64)
-    return np.asarray(knn(pts, k), dtype=np.int64)
+    return np.asarray(knn(pts, k)[0], dtype=np.int64)
 
 
 def _logit(p: torch.Tensor | float) -> torch.Tensor:

@@ -17,6 +17,8 @@ import torch.nn.functional as F
 
 from gear.camera import Camera
 from gear.config import TrainConfig
+from gear.em import classify_joints, knn_consistency_loss, region_pseudo_labels, sam_ce_loss
+from gear.kinematics import deform
 from gear.losses import composite, depth_log_l1, opacity_binarisation, photometric
 from gear.model import Gaussians, nearest_neighbours, render, scene_extent
 
@@ -190,9 +192,11 @@ class Refine(_Stage):
         target_views: Sequence[TrainView],
         config: TrainConfig,
         seed: int,
+        init_motions: Sequence[tuple[np.ndarray, np.ndarray]] = (),
     ) -> None:
         super().__init__(config, seed)
         self.gaussians, self.motion, self.frozen = gaussians, motion, frozen
+        self.init_motions = list(init_motions)
         self.canonical_views = list(canonical_views)
         self.region_views = [v for v in self.canonical_views if v.regions is not None]
         self.target_views = list(target_views)
@@ -257,8 +261,6 @@ class Refine(_Stage):
         else:
             weights = torch.softmax(logits, dim=1)
 
-        from gear.kinematics import deform
-
         index = int(torch.randint(len(self.target_views), (1,), generator=self.generator))
         view = self.target_views[index]
         bg = self._background()
@@ -294,8 +296,6 @@ class Refine(_Stage):
 
     def _segmentation_terms(self, logits: torch.Tensor, rgb: torch.Tensor) -> dict:
         """E-step: region-voted pseudo-labels on a rendered logit image (CE) + KNN smoothness."""
-        from gear.em import knn_consistency_loss, region_pseudo_labels, sam_ce_loss
-
         c, g = self.config, self.gaussians
         terms = {"knn": c.lambda_knn * knn_consistency_loss(logits, self.neighbours())}
         if not self.region_views:
@@ -320,12 +320,35 @@ class Refine(_Stage):
 
     def classify(self) -> None:
         """Revolute joints below ε become prismatic; the motion optimizer is rebuilt."""
-        from gear.em import classify_joints
-
-        switched = classify_joints(self.motion, eps_deg=self.config.revolute_eps_deg)
+        c = self.config
+        resolve = c.resolve_ambiguous_joints
+        switched = classify_joints(
+            self.motion,
+            eps_deg=c.revolute_eps_deg,
+            score=self.motion_loss if resolve else None,
+            init_motions=self.init_motions if resolve and self.init_motions else None,
+        )
         self.events.append({"event": "joint_classification", "prismatic": list(switched)})
-        if switched:
-            self.motion_optimizer = self._make_motion_optimizer()
+        # Any part below ε may have been rewritten (slide or initial hinge): fresh Adam moments.
+        self.motion_optimizer = self._make_motion_optimizer()
+
+    @torch.no_grad()
+    def motion_loss(self, candidate) -> float:  # noqa: ANN001 (PartMotion)
+        """Photometric + depth loss of the hard-assigned model moved by `candidate`, over (up
+        to 8) target training views on a black background: how well a joint hypothesis
+        explains the target images. No ground truth is involved."""
+        g, c = self.gaussians, self.config
+        qr, qd = candidate.motion(1.0)
+        weights = F.one_hot(g.part_ids(), g.num_parts).float()
+        means, quats = deform(g["means"].detach(), g["quats"].detach(), weights, qr, qd)
+        views = self.target_views[:: max(1, len(self.target_views) // 8)]
+        total = 0.0
+        for view in views:
+            out = render(means, quats, g["log_scales"].detach(), g["opacity"].detach(),
+                         g.rgb().detach(), view.camera, torch.zeros(3),
+                         depth=view.depth is not None)
+            total += float(sum(_image_terms(out, view, torch.zeros(3), c).values()))
+        return total / len(views)
 
     def state_dict(self) -> dict:
         return {

@@ -240,7 +240,7 @@ class Trainer:
             start = 0
         motion = PartMotion.from_rt(coarse["motions"])
         stage = Refine(g, motion, frozen, self.views[canonical], self.views[target], c,
-                       c.seed * 1000 + 7)
+                       c.seed * 1000 + 7, init_motions=coarse["motions"])
         if start:
             stage.load_state_dict(resume["stage_state"])
 
