@@ -150,3 +150,18 @@ def test_generated_scene_depth_fuses_onto_its_gt_mesh(tmp_path):
     assert dist.mean() < 0.012  # fused surface on the GT surface (the GT's hidden inside aside)
     assert np.percentile(dist, 90) < 0.02
     np.testing.assert_allclose(mesh.bounds, gt.bounds, atol=0.05)  # the exterior is complete
+
+
+def test_marching_cubes_only_on_fully_observed_cubes():
+    # Observed slabs x = 0, 1 (outside, +1) and x = 2 (inside, -1); x >= 3 unobserved (+1 as
+    # stored). The true surface lies at x = 1.5; the sign change between the observed x = 2 and
+    # the unobserved x = 3 must not produce a second one at x = 2.5.
+    from gear.mesh import _extract_surface
+
+    volume = np.ones((6, 5, 5), np.float32)
+    volume[2] = -1.0
+    observed = np.zeros(volume.shape, bool)
+    observed[:3] = True
+    mesh = _extract_surface(volume, observed, lo=np.zeros(3), voxel=1.0)
+    assert len(mesh.faces) > 0
+    np.testing.assert_allclose(mesh.vertices[:, 0], 1.5)

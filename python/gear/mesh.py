@@ -185,7 +185,8 @@ def _extract_surface(
     """Marching cubes on cubes whose 8 corners are observed; the largest component."""
     if min(volume.shape) < 2:
         return trimesh.Trimesh()
-    # skimage visits the cube whose lowest corner is (x, y, z) only where mask[x, y, z] is set.
+    # skimage visits the cube spanning [x-1, x] x [y-1, y] x [z-1, z] only where mask[x, y, z]
+    # is set (its highest corner; checked on a one-voxel volume).
     cube_ok = np.zeros_like(observed)
     corners = observed[:-1, :-1, :-1].copy()
     for dx in (0, 1):
@@ -193,9 +194,9 @@ def _extract_surface(
             for dz in (0, 1):
                 corners &= observed[dx : dx + volume.shape[0] - 1, dy : dy + volume.shape[1] - 1,
                                     dz : dz + volume.shape[2] - 1]
-    cube_ok[:-1, :-1, :-1] = corners
-    values = volume[cube_ok]
-    if not cube_ok.any() or values.min() > 0 or values.max() < 0:
+    cube_ok[1:, 1:, 1:] = corners
+    seen = volume[observed]
+    if not cube_ok.any() or seen.min() > 0 or seen.max() < 0:  # no sign change: no surface
         return trimesh.Trimesh()
     try:
         verts, faces, _, _ = marching_cubes(
