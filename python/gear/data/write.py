@@ -13,6 +13,7 @@ from gear.data.load import DEPTH_SCALE, gt_mesh_files, transforms_name
 from gear.data.scene import GtJoint, View
 
 MAX_DEPTH_M = np.iinfo(np.uint16).max / DEPTH_SCALE
+PNG_LEVEL = 1  # fast zlib level: ~3x faster writes than the default for ~30% larger files
 
 
 def _to_u8(x: np.ndarray) -> np.ndarray:
@@ -26,7 +27,7 @@ def write_view(root: Path, view: View) -> str:
     rgba = np.concatenate([_to_u8(view.rgb), _to_u8(view.alpha)[..., None]], axis=-1)
     rel = base / "rgba" / f"{index}.png"
     (root / rel).parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(rgba, "RGBA").save(root / rel)
+    Image.fromarray(rgba, "RGBA").save(root / rel, compress_level=PNG_LEVEL)
     if view.depth is not None:
         depth = np.nan_to_num(view.depth, nan=0.0, posinf=0.0, neginf=0.0)
         if depth.max(initial=0.0) > MAX_DEPTH_M:
@@ -35,7 +36,7 @@ def write_view(root: Path, view: View) -> str:
             )
         mm = np.round(np.clip(depth, 0.0, None) * DEPTH_SCALE).astype(np.uint16)
         (root / base / "depth").mkdir(parents=True, exist_ok=True)
-        Image.fromarray(mm).save(root / base / "depth" / f"{index}.png")
+        Image.fromarray(mm).save(root / base / "depth" / f"{index}.png", compress_level=PNG_LEVEL)
     if view.regions is not None:
         if view.regions.max(initial=0) > np.iinfo(np.uint16).max or view.regions.min(initial=0) < 0:
             raise ValueError(f"{view.name}: region ids must fit uint16")

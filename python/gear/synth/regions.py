@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from skimage import measure
 
 MIN_AREA_FRACTION = 2e-4  # regions smaller than this share of the image become 0 (no region)
 
@@ -16,20 +17,14 @@ MIN_AREA_FRACTION = 2e-4  # regions smaller than this share of the image become 
 def clean_regions(facets: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Region ids (int32, 0 = none) from a facet-key image (-1 = background)."""
     min_area = max(4, int(MIN_AREA_FRACTION * facets.size))
-    out = np.zeros(facets.shape, dtype=np.int32)
-    next_id = 1
-    for key in np.unique(facets[facets >= 0]):
-        labels, n = ndimage.label(facets == key)
-        if n == 0:
-            continue
-        sizes = np.bincount(labels.ravel(), minlength=n + 1)
-        keep = np.nonzero(sizes[1:] >= min_area)[0] + 1
-        remap = np.zeros(n + 1, dtype=np.int32)
-        remap[keep] = np.arange(next_id, next_id + len(keep))
-        next_id += len(keep)
-        inside = labels > 0
-        out[inside] = remap[labels[inside]]
-    return shuffle_ids(out, rng)
+    # One pass: 4-connected components of equal facet keys (background is key -1 -> 0).
+    labels = measure.label(facets + 1, background=0, connectivity=1)
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    keep = sizes >= min_area
+    remap = np.zeros(len(sizes), dtype=np.int32)
+    remap[keep] = np.arange(1, int(keep.sum()) + 1)
+    return shuffle_ids(remap[labels], rng)
 
 
 def shuffle_ids(regions: np.ndarray, rng: np.random.Generator) -> np.ndarray:
