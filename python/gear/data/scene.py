@@ -41,10 +41,6 @@ class View:
     def state(self) -> str:
         return self.name.split("/")[0]
 
-    @property
-    def index(self) -> str:
-        return self.name.split("/")[-1]
-
 
 @dataclass
 class GtJoint:
