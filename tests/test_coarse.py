@@ -5,9 +5,6 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-# gear.geometry (voxel grids, components, KNN in Rust) lands from its own branch.
-pytest.importorskip("gear.geometry")
-
 from gear.coarse import (
     coarse_init,
     correlate,

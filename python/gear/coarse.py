@@ -27,6 +27,13 @@ DILATION_RADIUS = 1
 PLANE_ASPECT = 3.0  # max/min principal extent above which a component is a plane
 PARALLEL_COS = 0.95  # |n_s . n_t| above this: the planes are too parallel to intersect
 MIN_OVERLAP = 0.1  # overlap / min(|S|, |T|) below this: no motion hypothesis is trusted
+# Counting a component as a new part (K unknown) needs more: components seen in one state only
+# (a cabinet's interior through an open door) reach 10-20 % by chance.
+DETECT_OVERLAP = 0.3
+# A hinge and a slide landing within this fraction of each other are both kept as candidates
+# (stage 3 picks by the images); among slides this close, the shortest wins.
+TIE_MARGIN = 0.1
+SLIDE_TOLERANCE = 0.05
 # Voxel size from the data: the object's extent divided by these cell counts (a coarse grid for
 # one movable part, a fine one to separate neighbouring parts), but never finer than
 # SPACING_FACTOR times the median spacing of the centres, or static surfaces would not be seen
@@ -36,7 +43,7 @@ CELLS_MULTI = 100
 SPACING_FACTOR = 2.0
 # K from the data: a canonical component is a part when it has at least MIN_PART_VOXELS voxels,
 # holds MIN_PART_FRACTION of the canonical centres and some motion maps it onto the target's
-# dynamic voxels (overlap >= MIN_OVERLAP).
+# dynamic voxels (overlap >= DETECT_OVERLAP).
 MIN_PART_VOXELS = 8
 MIN_PART_FRACTION = 0.01
 MAX_TARGET_CANDIDATES = 16
@@ -56,6 +63,9 @@ class CoarseInit:
     motions: list[tuple[np.ndarray, np.ndarray]]
     voxel_size: float
     notes: list[str] = field(default_factory=list)
+    # Per movable part: its motion first, then any near-tie of the other kind (hinge vs slide)
+    # for em.classify_joints to decide by the images.
+    candidates: list[list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=list)
 
 
 @dataclass
@@ -127,11 +137,20 @@ def hinge_candidates(src: Plane, dst: Plane) -> list[tuple[np.ndarray, np.ndarra
 
     Axis n_s x n_t, pivot the least-squares point on both planes (midway between the centroids
     along the axis), angle arccos(n_s . n_t), and that angle + pi (the normals' signs are
-    arbitrary). Empty when the planes are nearly parallel.
+    arbitrary). Nearly parallel planes have no usable intersection; if `dst` lies beside `src`
+    (their centroids apart mostly within the plane) they give the half turn that folds one onto
+    the other: axis in the plane, across the centroids' offset, through their midpoint. That is
+    a door opened by 180 degrees, which the plane intersection cannot see.
     """
     cos = float(np.dot(src.normal, dst.normal))
     if abs(cos) > PARALLEL_COS:
-        return []
+        offset = dst.centroid - src.centroid
+        beside = offset - np.dot(offset, src.normal) * src.normal
+        if np.linalg.norm(beside) <= 0.5 * np.linalg.norm(offset):
+            return []
+        axis = np.cross(src.normal, beside)
+        pivot = (src.centroid + dst.centroid) / 2
+        return [rotation_about_line(axis, pivot, np.pi)]
     axis = np.cross(src.normal, dst.normal)
     axis /= np.linalg.norm(axis)
     system = np.stack([src.normal, dst.normal, axis])
@@ -246,12 +265,16 @@ class _Split:
         exact, _ = correlate(self.exact_target, src_mask)
         explained, _ = correlate(self.dyn_target, src_mask)
         need = MIN_OVERLAP * min(int(src_mask.sum()), int(self.dyn_target.sum()))
-        # Ties within the one-voxel tolerance go to the shift that lands exactly.
-        rank = np.where(explained >= max(need, 1), landed + exact + 1e-3 * explained, -1.0)
-        peak = np.unravel_index(int(np.argmax(rank)), rank.shape)
-        if rank[peak] < 0:
+        # Exact landings break ties within the one-voxel tolerance.
+        rank = np.where(explained >= max(need, 1), landed + exact, -1.0)
+        top = rank.max()
+        if top < 0:
             return None
-        return (np.array(peak) + offset) * self.grid.voxel_size
+        # Of the shifts nearly as good as the best, the shortest: a drawer among identical
+        # drawers also "fits" where its neighbour is.
+        near = np.argwhere(rank >= (1 - SLIDE_TOLERANCE) * top) + offset
+        shortest = near[np.argmin(np.linalg.norm(near, axis=1))]
+        return shortest * self.grid.voxel_size
 
 
 def split_static_dynamic(canon: np.ndarray, target: np.ndarray, voxel_size: float) -> _Split:
@@ -279,13 +302,14 @@ def split_static_dynamic(canon: np.ndarray, target: np.ndarray, voxel_size: floa
 
 def init_motion(
     split: _Split, comp: int, canon_plane: Plane, target: np.ndarray, target_labels: np.ndarray
-) -> Hypothesis:
-    """Initial motion of canonical component `comp`.
+) -> list[Hypothesis]:
+    """Initial motion of canonical component `comp`, and the runner-up of the other kind.
 
-    Candidates: the two plane-intersection hinges with every planar target component above a
-    size floor (when the component itself is planar), and the best whole-voxel slide. Among
-    those explaining enough target change, the one landing most cells on target matter wins
-    (a hinge on ties); the identity when none qualifies.
+    Candidates: the plane-intersection hinges with every planar target component above a size
+    floor (when the component itself is planar), and the best whole-voxel slide. Among those
+    explaining enough target change, the one landing most cells on target matter wins (a hinge
+    on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
+    follows when it lands within TIE_MARGIN of the winner.
     """
     src_mask = split.labels[0] == comp
     src_cells = np.argwhere(src_mask)
@@ -302,11 +326,13 @@ def init_motion(
     shift = split.best_slide(src_mask)
     if shift is not None:
         candidates.append(split.score(src_cells, "slide", np.eye(3), shift))
-    best = IDENTITY
-    for hyp in candidates:
-        if hyp.trusted and (not best.trusted or hyp.landed > best.landed):
-            best = hyp
-    return best
+    trusted = [h for h in candidates if h.trusted]
+    if not trusted:
+        return [IDENTITY]
+    # max() keeps the first of equal scores: hinges come first.
+    best = max(trusted, key=lambda h: h.landed)
+    others = [h for h in trusted if h.kind != best.kind and h.landed >= best.landed - TIE_MARGIN]
+    return [best] + ([max(others, key=lambda h: h.landed)] if others else [])
 
 
 def seed_logits(part_of_point: np.ndarray, num_parts: int) -> np.ndarray:
@@ -330,7 +356,11 @@ def _moves_along(split: _Split, cells: np.ndarray, motion: Hypothesis, own: Hypo
 @dataclass
 class _Part:
     components: list[int]
-    motion: Hypothesis
+    hypotheses: list[Hypothesis]  # the motion first, then a near-tie of the other kind
+
+    @property
+    def motion(self) -> Hypothesis:
+        return self.hypotheses[0]
 
 
 def find_parts(
@@ -343,7 +373,8 @@ def find_parts(
     matter about as well as its own best motion joins that part: a pulled drawer leaves two
     separate dynamic pieces, its front and its back. With K given, parts whose motion is
     trusted come first and untrusted components (identity motion) fill the remaining slots.
-    With K unknown, a component becomes a part only above the size floors and when trusted.
+    With K unknown, a component becomes a part only above the size floors and when its motion
+    explains at least DETECT_OVERLAP of the change it maps onto.
     """
     split = split_static_dynamic(canon, target, voxel_size)
     canon_labels = split.grid.point_labels(canon, split.labels[0])
@@ -363,17 +394,19 @@ def find_parts(
             break
         if wanted is None and counts[comp] < MIN_PART_FRACTION * len(canon):
             continue
-        hyp = init_motion(
+        hyps = init_motion(
             split, comp, fit_plane(canon[canon_labels == comp]), target, target_labels
         )
         cells = np.argwhere(split.labels[0] == comp)
-        owner = next((p for p in parts if _moves_along(split, cells, p.motion, hyp)), None)
+        owner = next((p for p in parts if _moves_along(split, cells, p.motion, hyps[0])), None)
+        detected = hyps[0].explained >= DETECT_OVERLAP
         if owner is not None:
             owner.components.append(comp)
-        elif not hyp.trusted:
-            spare.append(_Part([comp], IDENTITY))
-        elif wanted is None or len(parts) < wanted:
-            parts.append(_Part([comp], hyp))
+        elif hyps[0].trusted and (detected or wanted is not None):
+            if wanted is None or len(parts) < wanted:
+                parts.append(_Part([comp], hyps))
+        else:
+            spare.append(_Part([comp], [IDENTITY]))
     if wanted is not None:
         parts += spare[: max(0, wanted - len(parts))]
     return parts, canon_labels, notes
@@ -422,21 +455,25 @@ def coarse_init(
     if not parts:
         notes.append("no motion detected between the two states: one static part")
         logits = seed_logits(np.zeros(len(canon), np.int64), 1)
-        return CoarseInit(canonical, 1, logits, [], size, notes)
+        return CoarseInit(canonical, 1, logits, [], size, notes, [])
 
     k = len(parts) + 1 if num_parts is None else int(num_parts)
     part_of_point = np.zeros(len(canon), dtype=np.int64)
-    motions = []
+    candidates = []
     for index, part in enumerate(parts, start=1):
         part_of_point[np.isin(canon_labels, part.components)] = index
-        hyp = part.motion
-        motions.append((hyp.rot, hyp.trans))
+        candidates.append([(h.rot, h.trans) for h in part.hypotheses])
+        scores = ", ".join(
+            f"{h.kind} (landed {h.landed:.2f}, explained {h.explained:.2f})"
+            for h in part.hypotheses
+        )
         notes.append(
             f"part {index}: components {part.components} "
-            f"({int((part_of_point == index).sum())} Gaussians), {hyp.kind} init "
-            f"(landed {hyp.landed:.2f}, explained {hyp.explained:.2f})"
+            f"({int((part_of_point == index).sum())} Gaussians), init {scores}"
         )
     for index in range(len(parts) + 1, k):
-        motions.append((np.eye(3), np.zeros(3)))
+        candidates.append([(np.eye(3), np.zeros(3))])
         notes.append(f"part {index}: no dynamic component left; identity init, no seeded logits")
-    return CoarseInit(canonical, k, seed_logits(part_of_point, k), motions, size, notes)
+    motions = [c[0] for c in candidates]
+    logits = seed_logits(part_of_point, k)
+    return CoarseInit(canonical, k, logits, motions, size, notes, candidates)
