@@ -1,8 +1,9 @@
 """Class-agnostic region masks that imitate SAM output, and their deliberate flaws.
 
-Clean masks: connected regions of one part and one dominant surface orientation (SAM tends to
-split a box into its visible faces but never crosses a part boundary it can see), tiny regions
-dropped (SAM's minimum area), ids shuffled per image so they carry no meaning across images.
+Clean masks: connected regions of one primitive (a box, a handle, one material of a mesh) and
+one dominant surface orientation: SAM tends to give a handle its own mask and to split a box
+into its visible faces, but never crosses a part boundary it can see. Tiny regions are dropped
+(SAM's minimum area) and ids are shuffled per image so they carry no meaning across images.
 """
 
 from __future__ import annotations

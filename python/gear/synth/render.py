@@ -26,7 +26,7 @@ class Packed:
     faces: np.ndarray  # [F,3]
     normals: np.ndarray  # [F,3] unit face normals, posed
     part: np.ndarray  # [F] uint8 part id (0 static, i+1 moved by joint i)
-    facet: np.ndarray  # [F] int64 (part, dominant rest-normal side): region-mask seeds
+    facet: np.ndarray  # [F] int64 (surface, dominant rest-normal side): region-mask seeds
     colors: np.ndarray  # [F,3]
     pattern: np.ndarray  # [F]
     uv: np.ndarray  # [F,3,2]
@@ -40,6 +40,7 @@ def pack(obj: Articulated, state: str) -> Packed:
         value = part.joint.start if state == "start" else part.joint.end
         groups.append((part.surfaces, part.joint.pose(value)))
     verts, rest, faces, part_ids, colors, pattern, uvs, tex = [], [], [], [], [], [], [], []
+    surface_ids = []
     textures: list[np.ndarray] = []
     texture_index: dict[int, int] = {}  # id(image) -> index: shared images are sampled once
     offset = 0
@@ -51,6 +52,7 @@ def pack(obj: Articulated, state: str) -> Packed:
             offset += len(s.vertices)
             n = len(s.faces)
             part_ids.append(np.full(n, pid, dtype=np.uint8))
+            surface_ids.append(np.full(n, len(surface_ids), dtype=np.int64))
             colors.append(s.colors)
             pattern.append(np.full(n, s.pattern, dtype=np.float32))
             if s.texture is not None:
@@ -74,7 +76,7 @@ def pack(obj: Articulated, state: str) -> Packed:
         faces_all,
         _face_normals(vertices, faces_all),
         part_all,
-        part_all.astype(np.int64) * 6 + _dominant_side(_face_normals(rest_all, faces_all)),
+        np.concatenate(surface_ids) * 6 + _dominant_side(_face_normals(rest_all, faces_all)),
         np.concatenate(colors),
         np.concatenate(pattern),
         np.concatenate(uvs),
