@@ -223,3 +223,23 @@ def test_scene_without_depth_or_masks_loads(scene_dir, tmp_path, capsys):
     assert bare.test("start") == [] and len(bare.train("end")) == 4
     assert main(["check", str(tmp_path / "bare")]) == 0
     assert "has RGBA only" in capsys.readouterr().out
+
+
+def test_camera_problems_reported_even_without_image(broken):
+    (broken / "start/train/rgba/0000.png").unlink()
+
+    def three_by_three(meta):
+        meta["frames"][0]["transform_matrix"] = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
+
+    def bad_angle(meta):
+        meta["camera_angle_y"] = "wide"
+
+    _frame_edit(broken, "transforms_train_start.json", three_by_three)
+    _frame_edit(broken, "transforms_test_end.json", bad_angle)
+    _expect(
+        broken,
+        "start/train/rgba/0000.png: missing",
+        "transforms_train_start.json: frame 0 (start/train/rgba/0000.png): camera",
+        "expected a 4x4 matrix",
+        "transforms_test_end.json: camera_angle_y must be a number",
+    )

@@ -197,14 +197,16 @@ def _load_split(reader: _Reader, state: str, split: str, required: bool) -> list
         reader.problem(json_path, "needs a 'frames' list")
         return []
     angle_x, angle_y = meta.get("camera_angle_x"), meta.get("camera_angle_y")
-    if not isinstance(angle_x, int | float) or not 0 < angle_x < np.pi:
-        reader.problem(json_path, f"camera_angle_x must be a number in (0, pi), got {angle_x!r}")
-        return []
+    for name, angle in (("camera_angle_x", angle_x), ("camera_angle_y", angle_y)):
+        if angle is None and name == "camera_angle_y":
+            continue
+        if not isinstance(angle, int | float) or not 0 < angle < np.pi:
+            reader.problem(json_path, f"{name} must be a number in (0, pi), got {angle!r}")
+            return []
     if not meta["frames"]:
         reader.problem(json_path, "has no frames")
     views: list[View] = []
     for k, frame in enumerate(meta["frames"]):
-        where = f"frame {k}"
         file_path = frame.get("file_path") if isinstance(frame, dict) else None
         if not isinstance(file_path, str):
             reader.problem(json_path, f"frame {k} has no file_path")
@@ -215,17 +217,15 @@ def _load_split(reader: _Reader, state: str, split: str, required: bool) -> list
         rgba = reader.read_rgba(reader.root / rel)
         try:
             matrix = np.asarray(frame.get("transform_matrix"), dtype=np.float64)
-        except (TypeError, ValueError):
-            matrix = np.full((4, 4), np.nan)
+            Camera.from_blender(matrix, angle_x, 1, 1, angle_y)  # the pose alone, any image
+        except (TypeError, ValueError) as err:
+            reader.problem(json_path, f"frame {k} ({rel}): camera {err}")
+            continue
         if rgba is None:
             continue
         rgb, alpha = rgba
         h, w = alpha.shape
-        try:
-            camera = Camera.from_blender(matrix, float(angle_x), w, h, angle_y)
-        except ValueError as err:
-            reader.problem(json_path, f"{where} ({rel}): camera {err}")
-            continue
+        camera = Camera.from_blender(matrix, angle_x, w, h, angle_y)
         view = View(f"{state}/{split}/{rel.stem}", camera, rgb, alpha)
         companions = {k2: companion_path(rel, k2) for k2 in ("depth", "mask", "parts")}
         if companions["depth"] and (reader.root / companions["depth"]).exists():
