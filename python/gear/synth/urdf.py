@@ -325,7 +325,12 @@ def load_urdf(
                 stack.append((j.child, frame @ frozen, part))
     empty = [p.joint.name for p in parts if not p.surfaces]
     if empty:
-        raise ValueError(f"{path.name}: moving joint(s) {empty} carry no geometry")
+        raise ValueError(
+            f"{path.name}: moving joint(s) {empty} carry no geometry; freeze them with "
+            "--start/--end"
+        )
+    order = {j.name: i for i, j in enumerate(robot.joints.values())}  # file order
+    parts.sort(key=lambda p: order[p.joint.name])
     if not static and not parts:
         raise ValueError(f"{path.name}: no visual geometry")
     return Articulated(path.parent.name if path.stem == "mobility" else path.stem, static, parts)
