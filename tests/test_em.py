@@ -157,3 +157,26 @@ def test_classify_joints_scores_ambiguous_hinges():
     assert math.isclose(score(motion), 0.0, abs_tol=1e-9)
     with pytest.raises(ValueError, match="init_motions"):
         classify_joints(motion, score=score, init_motions=[door, door])
+
+
+def test_classify_joints_rescores_parts_stage2_was_torn_on():
+    """A sliding panel that stage 2 read as a half-turn fold (a tie in voxels): the part
+    turned far beyond eps, but with two stage-2 guesses it is scored, and the slide wins."""
+    slide_t = np.array([0.6, 0.0, 0.0])
+    fold = hinge([0, 0, 1], [0.3, 0, 0], 180.0)
+    probe = torch.tensor([[0.1, 0.0, 0.2], [0.5, 0.0, 0.9], [0.2, 0.0, 0.4]])
+    target = probe + torch.tensor(slide_t, dtype=torch.float32)
+
+    def score(candidate):
+        qr, qd = (x.detach() for x in candidate.motion())
+        return float((dq_apply(qr[1], qd[1], probe) - target).square().sum())
+
+    motion = PartMotion.from_rt([fold])
+    assert classify_joints(motion, score=score, init_motions=[[fold, (np.eye(3), slide_t)]]) == [1]
+    joint = motion.joints(np.zeros(3))[0]
+    assert joint["type"] == "prismatic" and joint["distance"] == pytest.approx(0.6, abs=1e-5)
+    # One guess only, or no score: a part turned beyond eps is left alone.
+    motion = PartMotion.from_rt([fold])
+    assert classify_joints(motion, score=score, init_motions=[[fold]]) == []
+    assert classify_joints(motion, init_motions=[[fold, (np.eye(3), slide_t)]]) == []
+    assert not bool(motion.prismatic[1])

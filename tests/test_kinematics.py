@@ -307,8 +307,10 @@ def test_resolve_ambiguous_joint_picks_lowest_score():
         qr, qd = (x.detach() for x in candidate.motion())
         return float((dq_apply(qr[1], qd[1], probe) - target).square().sum())
 
-    chosen = resolve_ambiguous_joint(motion, 1, score, init_rt=(true_rot, true_t))
-    assert chosen.name == "revolute-init" and not bool(motion.prismatic[1])
+    chosen = resolve_ambiguous_joint(
+        motion, 1, score, extra=[(np.eye(3), true_t), (true_rot, true_t)]
+    )
+    assert chosen.name == "revolute-extra1" and not bool(motion.prismatic[1])
     assert motion.joints(np.zeros(3))[0]["angle_deg"] == pytest.approx(170.0, abs=1e-3)
     # A drawer that picked up a spurious 4-degree twist: the slide keeping its translation wins.
     twisted = Rotation.from_rotvec([0, 0, np.deg2rad(4.0)]).as_matrix()

@@ -135,36 +135,53 @@ def knn_consistency_loss(logits: torch.Tensor, neighbours: torch.Tensor) -> torc
     return dist[valid].mean()
 
 
+Motion = tuple[np.ndarray, np.ndarray]
+
+
+def _as_candidates(entry: Motion | Sequence[Motion]) -> list[Motion]:
+    """One part's stage-2 guesses: a bare (R, t) pair or a list of them."""
+    try:
+        bare = np.asarray(entry[0], float).shape == (3, 3) and np.asarray(entry[1], float).size == 3
+    except (ValueError, TypeError):  # a list of pairs does not convert to one float array
+        bare = False
+    return [entry] if bare else list(entry)
+
+
 def classify_joints(
     motion: PartMotion,
     eps_deg: float = 10.0,
     score: Callable[[PartMotion], float] | None = None,
-    init_motions: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+    init_motions: Sequence[Motion | Sequence[Motion]] | None = None,
 ) -> list[int]:
     """Turns revolute parts whose rotation is below `eps_deg` into prismatic ones.
 
     Without `score` this is the paper's rule. With `score` (the photometric + depth loss of a
-    candidate PartMotion, see kinematics.resolve_ambiguous_joint) every such part is ambiguous:
-    its revolute reading, its slide and, when `init_motions` (stage 2's (R, t) per movable part)
-    is given, the initial motion are all scored and the lowest loss wins. This rescues hinges
-    that stalled at a small angle, e.g. a door opened 180 degrees. Returns the parts made
-    prismatic; the caller rebuilds the optimizer state of `motion`.
+    candidate PartMotion, see kinematics.resolve_ambiguous_joint) a part is ambiguous when it
+    turned less than `eps_deg` or when stage 2 left it more than one guess
+    (`init_motions[k-1]`: an (R, t) or a list of them, e.g. CoarseInit.candidates). An
+    ambiguous part's readings — its current motion, its slide and the stage-2 guesses — are
+    all scored and the lowest loss wins. This rescues hinges that stalled at a small angle,
+    e.g. a door opened 180 degrees. Returns the parts made prismatic; the caller rebuilds the
+    optimizer state of `motion`.
     """
     if init_motions is not None and len(init_motions) != motion.num_parts - 1:
         raise ValueError(
-            f"init_motions: expected {motion.num_parts - 1} motions, got {len(init_motions)}"
+            f"init_motions: expected {motion.num_parts - 1} entries, got {len(init_motions)}"
         )
+    guesses = [_as_candidates(e) for e in init_motions] if init_motions is not None else None
     qr, _ = motion.motion()
     angles = quat_angle(qr.detach())
     switched = []
     for k in range(1, motion.num_parts):
-        if bool(motion.prismatic[k]) or float(angles[k]) >= math.radians(eps_deg):
+        if bool(motion.prismatic[k]):
             continue
+        small = float(angles[k]) < math.radians(eps_deg)
+        extra = guesses[k - 1] if guesses is not None else []
         if score is None:
-            motion.set_prismatic(k)
-        else:
-            init = None if init_motions is None else init_motions[k - 1]
-            resolve_ambiguous_joint(motion, k, score, init_rt=init)
+            if small:
+                motion.set_prismatic(k)
+        elif small or len(extra) > 1:
+            resolve_ambiguous_joint(motion, k, score, extra)
         if bool(motion.prismatic[k]):
             switched.append(k)
     return switched

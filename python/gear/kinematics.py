@@ -412,10 +412,11 @@ class JointHypothesis:
 
 
 def joint_hypotheses(
-    motion: PartMotion, k: int, init_rt: tuple[np.ndarray, np.ndarray] | None = None
+    motion: PartMotion, k: int, extra: Sequence[tuple[np.ndarray, np.ndarray]] = ()
 ) -> list[JointHypothesis]:
-    """Candidates for part k: its current revolute motion, the slide keeping its translation,
-    and (when given) the stage-2 initial motion as a second revolute guess."""
+    """Candidates for part k: its current motion read as a hinge, the slide keeping its
+    translation, and each extra (R, t) (e.g. stage 2's hinge and slide guesses), typed
+    prismatic when it does not rotate."""
     motion._check_movable(k)
     qr, qd = (x[k].detach().clone() for x in motion.motion())
     slide = dq_from_rt(quat_identity((), qr.dtype, qr.device), dq_to_rt(qr, qd)[1])
@@ -423,11 +424,15 @@ def joint_hypotheses(
         JointHypothesis("revolute", False, qr, qd),
         JointHypothesis("prismatic", True, *slide),
     ]
-    if init_rt is not None:
-        rot = torch.as_tensor(np.asarray(init_rt[0], dtype=np.float64)).reshape(3, 3)
-        trans = torch.as_tensor(np.asarray(init_rt[1], dtype=np.float64)).reshape(3)
-        iqr, iqd = dq_from_rt(quat_from_matrix(rot), trans)
-        out.append(JointHypothesis("revolute-init", False, iqr.to(qr.dtype), iqd.to(qr.dtype)))
+    for i, (rot, trans) in enumerate(extra):
+        rot = torch.as_tensor(np.asarray(rot, dtype=np.float64)).reshape(3, 3)
+        trans = torch.as_tensor(np.asarray(trans, dtype=np.float64)).reshape(3)
+        if not (torch.isfinite(rot).all() and torch.isfinite(trans).all()):
+            raise ValueError(f"extra[{i}]: non-finite rotation or translation")
+        eqr, eqd = dq_from_rt(quat_from_matrix(rot), trans)
+        still = math.degrees(float(quat_angle(eqr))) < _PRISMATIC_ANGLE_DEG
+        kind = "prismatic" if still else "revolute"
+        out.append(JointHypothesis(f"{kind}-extra{i}", still, eqr.to(qr), eqd.to(qr)))
     return out
 
 
@@ -435,16 +440,17 @@ def resolve_ambiguous_joint(
     motion: PartMotion,
     k: int,
     score: Callable[[PartMotion], float],
-    init_rt: tuple[np.ndarray, np.ndarray] | None = None,
+    extra: Sequence[tuple[np.ndarray, np.ndarray]] = (),
 ) -> JointHypothesis:
-    """Keeps both readings of an ambiguous joint and picks the one the images prefer.
+    """Keeps every reading of an ambiguous joint and picks the one the images prefer.
 
-    `score(candidate)` gets a copy of `motion` with part k set to one hypothesis and returns its
-    photometric + depth loss (lower is better; it may fine-tune the copy first). The winner is
-    written into `motion` and returned. Ground truth plays no part.
+    `score(candidate)` gets a copy of `motion` with part k set to one hypothesis of
+    joint_hypotheses(motion, k, extra) and returns its photometric + depth loss (lower is
+    better; it may fine-tune the copy first). The winner is written into `motion` and returned.
+    Ground truth plays no part.
     """
     best: tuple[float, JointHypothesis] | None = None
-    for hyp in joint_hypotheses(motion, k, init_rt):
+    for hyp in joint_hypotheses(motion, k, extra):
         candidate = copy.deepcopy(motion)
         candidate.set_part(k, hyp.qr, hyp.qd, hyp.prismatic)
         value = float(score(candidate))
