@@ -243,3 +243,16 @@ def test_camera_problems_reported_even_without_image(broken):
         "expected a 4x4 matrix",
         "transforms_test_end.json: camera_angle_y must be a number",
     )
+
+
+def test_blender_style_file_paths(broken):
+    """"./start/train/rgba/0000" (dot prefix, no extension) points at the same png."""
+
+    def blender_paths(meta):
+        for frame in meta["frames"]:
+            frame["file_path"] = "./" + frame["file_path"].removesuffix(".png")
+
+    _frame_edit(broken, "transforms_train_start.json", blender_paths)
+    scene = load_scene(broken)
+    assert scene.train("start")[2].name == "start/train/0002"
+    assert scene.train("start")[2].depth is not None
