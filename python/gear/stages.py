@@ -192,7 +192,7 @@ class Refine(_Stage):
         target_views: Sequence[TrainView],
         config: TrainConfig,
         seed: int,
-        init_motions: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+        init_motions: Sequence = (),  # stage-2 guesses per movable part (see classify_joints)
     ) -> None:
         super().__init__(config, seed)
         self.gaussians, self.motion, self.frozen = gaussians, motion, frozen

@@ -210,6 +210,9 @@ class Trainer:
             "num_parts": int(init.num_parts),
             "logits": torch.as_tensor(np.asarray(init.logits, dtype=np.float32)),
             "motions": [(np.asarray(r), np.asarray(t)) for r, t in init.motions],
+            # per movable part: its motion first, then near-ties of the other joint kind
+            "candidates": [[(np.asarray(r), np.asarray(t)) for r, t in part]
+                           for part in init.candidates] or None,
             "voxel_size": init.voxel_size,
             "notes": list(init.notes),
         }
@@ -240,7 +243,8 @@ class Trainer:
             start = 0
         motion = PartMotion.from_rt(coarse["motions"])
         stage = Refine(g, motion, frozen, self.views[canonical], self.views[target], c,
-                       c.seed * 1000 + 7, init_motions=coarse["motions"])
+                       c.seed * 1000 + 7,
+                       init_motions=coarse.get("candidates") or coarse["motions"])
         if start:
             stage.load_state_dict(resume["stage_state"])
 
