@@ -119,8 +119,20 @@ def test_hinge_candidates_contain_the_true_hinge():
     probe = np.array([[0.5, 0.0, 0.7], [1.0, 0.0, 0.0]])
     errors = [np.abs(probe @ r.T + t - (probe @ rot.T + trans)).max() for r, t in candidates]
     assert min(errors) < 1e-2
-    # Parallel planes have no intersection line to turn about.
+    # Parallel planes one behind the other have no line to turn about.
     assert hinge_candidates(fit_plane(slab), fit_plane(slab + np.array([0, 0.5, 0]))) == []
+
+
+def test_half_turn_fold_of_parallel_planes():
+    rng = np.random.default_rng(6)
+    slab = box_surface([0, -0.02, 0], [1, 0.02, 1.5], 8000, rng)
+    rot, trans = hinge_motion([0, 0, 1], [0, 0, 0], 180.0)
+    offsets = np.linspace(-0.1, 0.1, 5)
+    candidates = hinge_candidates(fit_plane(slab), fit_plane(slab @ rot.T + trans), offsets)
+    assert len(candidates) == len(offsets) ** 2
+    probe = np.array([[0.5, 0.0, 0.7], [1.0, 0.0, 0.0]])
+    errors = [np.abs(probe @ r.T + t - (probe @ rot.T + trans)).max() for r, t in candidates]
+    assert min(errors) < 2e-2
 
 
 def test_correlate_counts_every_shift():
@@ -168,6 +180,19 @@ def test_wide_open_door_picks_the_far_angle():
     """150 degrees: arccos of the plane normals gives 30 (or 150); overlap decides."""
     start, end, axis, pivot, _ = door_scene(150.0, FRAMES["identity"], seed=4)
     check_hinge(coarse_init(start, end, 2), axis, pivot, 150.0, extent=2.2)
+
+
+def test_door_opened_half_a_turn_keeps_the_fold_as_a_candidate():
+    """At 180 degrees the door's two planes are parallel: no plane intersection exists, and in
+    voxels the fold looks like a slide of a symmetric slab. Both readings must reach stage 3."""
+    start, end, axis, pivot, _ = door_scene(180.0, FRAMES["identity"], seed=4)
+    result = coarse_init(start, end, 2)
+    readings = PartMotion.from_rt(result.candidates[0], dtype=torch.float64).joints(pivot)
+    folds = [j for j in readings if j["type"] == "revolute"]
+    assert {j["type"] for j in readings} == {"revolute", "prismatic"} and len(folds) == 1
+    assert folds[0]["angle_deg"] == pytest.approx(180.0, abs=1.0)
+    assert abs(np.dot(folds[0]["axis"], axis)) > np.cos(np.radians(3.0))
+    assert line_distance(folds[0]["origin"], pivot, axis) < 0.1 * 2.0  # 10 % of the extent
 
 
 def test_drawer_gets_a_slide():

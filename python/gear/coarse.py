@@ -12,6 +12,7 @@ data-driven choices (voxel size, K) and where this goes beyond the paper.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -70,12 +71,16 @@ class CoarseInit:
 
 @dataclass
 class Plane:
-    """Least-squares plane of a point set: centroid, unit normal (smallest principal axis) and
-    the ratio of the largest to the smallest principal extent."""
+    """Least-squares plane of a point set: centroid, principal axes (rows, largest extent
+    first; the last is the unit normal) and the ratio of the largest to the smallest extent."""
 
     centroid: np.ndarray
-    normal: np.ndarray
+    axes: np.ndarray
     aspect: float
+
+    @property
+    def normal(self) -> np.ndarray:
+        return self.axes[-1]
 
     @property
     def is_plane(self) -> bool:
@@ -86,9 +91,9 @@ class Plane:
 class Hypothesis:
     """A candidate canonical -> target motion for one component, scored on the voxel grid.
 
-    landed: fraction of the component's cells that land on occupied target cells (the part
-    must end up where the target has matter). explained: target dynamic cells it covers over
-    min(|S|, |dynamic target|), the paper's overlap (it must explain some change).
+    landed: fraction of the component's cells that land on occupied target cells, within one
+    voxel (the part must end up where the target has matter). explained: target dynamic cells
+    it covers over min(|S|, |dynamic target|), the paper's overlap (it must explain change).
     """
 
     kind: str  # "hinge", "slide" or "identity"
@@ -117,7 +122,7 @@ def fit_plane(points: np.ndarray) -> Plane:
     lo, hi = np.percentile(proj, [2, 98], axis=0)
     extent = hi - lo
     aspect = float(extent.max() / max(extent.min(), 1e-9 * max(extent.max(), 1e-300)))
-    return Plane(centroid, axes[-1] / np.linalg.norm(axes[-1]), aspect)
+    return Plane(centroid, axes / np.linalg.norm(axes, axis=1, keepdims=True), aspect)
 
 
 def rotation_about_line(
@@ -132,25 +137,38 @@ def rotation_about_line(
     return rot, p - rot @ p
 
 
-def hinge_candidates(src: Plane, dst: Plane) -> list[tuple[np.ndarray, np.ndarray]]:
+def hinge_candidates(
+    src: Plane, dst: Plane, fold_offsets: Sequence[float] = (0.0,)
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Rotations about the intersection line of two planes taking `src` onto `dst`.
 
     Axis n_s x n_t, pivot the least-squares point on both planes (midway between the centroids
     along the axis), angle arccos(n_s . n_t), and that angle + pi (the normals' signs are
     arbitrary). Nearly parallel planes have no usable intersection; if `dst` lies beside `src`
-    (their centroids apart mostly within the plane) they give the half turn that folds one onto
-    the other: axis in the plane, across the centroids' offset, through their midpoint. That is
-    a door opened by 180 degrees, which the plane intersection cannot see.
+    (their centroids apart mostly within the plane) they give the half turns that fold one onto
+    the other: a door opened by 180 degrees, which the plane intersection cannot see. The fold
+    axis is the in-plane principal axis (of both planes) most across the centroids' offset, through
+    their midpoint moved by each of `fold_offsets` along the offset and along the normal (the
+    two pieces are rarely cut symmetrically about the hinge, nor is the hinge in their plane).
     """
     cos = float(np.dot(src.normal, dst.normal))
     if abs(cos) > PARALLEL_COS:
         offset = dst.centroid - src.centroid
         beside = offset - np.dot(offset, src.normal) * src.normal
-        if np.linalg.norm(beside) <= 0.5 * np.linalg.norm(offset):
+        length = float(np.linalg.norm(beside))
+        if length <= 0.5 * np.linalg.norm(offset):
             return []
-        axis = np.cross(src.normal, beside)
-        pivot = (src.centroid + dst.centroid) / 2
-        return [rotation_about_line(axis, pivot, np.pi)]
+        across = beside / length
+        axis = min(src.axes[:2], key=lambda a: abs(float(np.dot(a, across))))
+        # The same principal axis of dst (a half turn keeps the axis) halves the sampling noise.
+        twin = max(dst.axes[:2], key=lambda a: abs(float(np.dot(a, axis))))
+        axis = axis + np.sign(np.dot(twin, axis)) * twin
+        mid = (src.centroid + dst.centroid) / 2
+        return [
+            rotation_about_line(axis, mid + a * across + b * src.normal, np.pi)
+            for a in fold_offsets
+            for b in fold_offsets
+        ]
     axis = np.cross(src.normal, dst.normal)
     axis /= np.linalg.norm(axis)
     system = np.stack([src.normal, dst.normal, axis])
@@ -314,6 +332,7 @@ def init_motion(
     src_mask = split.labels[0] == comp
     src_cells = np.argwhere(src_mask)
     candidates: list[Hypothesis] = []
+    fold_offsets = split.grid.voxel_size * np.arange(-2.0, 2.5, 0.5)
     if canon_plane.is_plane:
         floor = max(MIN_PART_VOXELS, 0.2 * len(src_cells))
         for j, size in enumerate(split.sizes[1][:MAX_TARGET_CANDIDATES], start=1):
@@ -321,7 +340,7 @@ def init_motion(
                 break
             plane = fit_plane(target[target_labels == j])
             if plane.is_plane:
-                for rot, trans in hinge_candidates(canon_plane, plane):
+                for rot, trans in hinge_candidates(canon_plane, plane, fold_offsets):
                     candidates.append(split.score(src_cells, "hinge", rot, trans))
     shift = split.best_slide(src_mask)
     if shift is not None:
