@@ -240,9 +240,8 @@ def dq_blend(
     if weights.shape[-1] != qr.shape[0]:
         raise ValueError(f"weights: expected [N, {qr.shape[0]}], got {list(weights.shape)}")
     lead = weights.argmax(dim=-1)
-    agree = (qr[lead][:, None, :] * qr[None]).sum(
-        -1
-    )  # [N, K] dot of every part with the leading one
+    # [N, K]: dot product of every part's rotation with the point's leading part's.
+    agree = (qr[lead][:, None, :] * qr[None]).sum(-1)
     signed = weights * torch.where(agree < 0, -1.0, 1.0).to(weights.dtype)
     return dq_normalize(signed @ qr, signed @ qd)
 
