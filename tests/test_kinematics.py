@@ -320,3 +320,19 @@ def test_resolve_ambiguous_joint_picks_lowest_score():
     assert bool(motion.prismatic[1]) and score(motion) < 1e-10
     with pytest.raises(ValueError, match="non-finite"):
         resolve_ambiguous_joint(motion, 1, lambda _: float("nan"))
+
+
+def test_deform_gradcheck():
+    """Analytic gradients of the blended deformation match finite differences (float64)."""
+    rot, trans = hinge_rt([0.3, 1.0, -0.2], [0.2, 0.1, 0.0], 75.0)
+    qr, qd = dq_of(np.stack([np.eye(3), rot]), np.stack([np.zeros(3), trans]), torch.float64)
+    gen = torch.Generator().manual_seed(0)
+    means = torch.randn(5, 3, dtype=torch.float64, generator=gen)
+    quats = torch.nn.functional.normalize(torch.randn(5, 4, dtype=torch.float64, generator=gen))
+    logits = torch.randn(5, 2, dtype=torch.float64, generator=gen)
+    args = [x.clone().requires_grad_(True) for x in (means, quats, logits, qr, qd)]
+
+    def run(m, q, lg, r, d):
+        return deform(m, q, torch.softmax(lg, dim=1), r, d)
+
+    assert torch.autograd.gradcheck(run, args)
