@@ -141,3 +141,14 @@ def test_quick_profile_recovers_the_fridge_door_axis(tmp_path):
                  "meshes/start/whole.ply", "meshes/end/part_0.ply", "parts/end/test/0001.png",
                  "renders/start/test/0000.png"):
         assert (out / name).exists(), name
+
+
+def test_cli_stops_on_an_invalid_scene_with_its_problems(tmp_path, capsys):
+    from gear.cli import main
+
+    (tmp_path / "scene").mkdir()
+    code = main(["train", str(tmp_path / "scene"), "--out", str(tmp_path / "out"), "--quiet"])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "invalid scene" in err and "transforms_train_start.json" in err
+    assert not (tmp_path / "out" / "checkpoints").exists()

@@ -108,11 +108,12 @@ def write_view_images(out_dir: Path, g: Gaussians, motion: PartMotion | None, ca
         for split, vs in splits.items():
             for view in vs:
                 ids, rgb = _render_parts(g, means, quats, view.camera)
-                path = out_dir / "parts" / state / split / f"{view.index}.png"
+                stem = view.name.rsplit("/", 1)[-1]  # the image's file stem, e.g. "0003"
+                path = out_dir / "parts" / state / split / f"{stem}.png"
                 path.parent.mkdir(parents=True, exist_ok=True)
                 Image.fromarray(ids).save(path)
                 if split == "test":
-                    path = out_dir / "renders" / state / split / f"{view.index}.png"
+                    path = out_dir / "renders" / state / split / f"{stem}.png"
                     path.parent.mkdir(parents=True, exist_ok=True)
                     Image.fromarray(np.round(rgb * 255).astype(np.uint8)).save(path)
 
