@@ -161,10 +161,15 @@ def core_args(scene: Scene, cam: splat.Camera, depth: bool) -> tuple:
     )
 
 
-@pytest.mark.parametrize(("n", "channels", "depth", "width", "height", "seed"), SCENES[1:3])
-def test_rust_reference_matches_torch_reference(n, channels, depth, width, height, seed):
+@pytest.mark.parametrize(
+    ("n", "channels", "depth", "width", "height", "seed", "spread"),
+    [(*SCENES[1], 1.0), (*SCENES[2], 1.0), (60, 2, True, 24, 20, 14, 4.0)],
+)
+def test_rust_reference_matches_torch_reference(n, channels, depth, width, height, seed, spread):
     # Two independent float64 implementations of the contract, on the same float32 inputs.
-    scene = random_scene(n, channels, seed)
+    # spread 4 puts many Gaussians past the 1.3x-frustum clamp of the Jacobian, some behind
+    # the camera.
+    scene = random_scene(n, channels, seed, spread, log_scale=(-2.0, -0.5))
     cam = as_float32(camera(width, height))
     *outputs, state = _core.reference_forward(*core_args(scene, cam, depth))
     scene64 = scene.to(torch.float64, requires_grad=True)
