@@ -7,7 +7,6 @@ use pyo3::prelude::*;
 
 /// One expected dimension: a fixed size, or any size (named for the message).
 #[derive(Clone, Copy)]
-#[allow(dead_code)] // `Fixed` is for the splat/geometry bindings; drop this once they use it
 pub enum Dim {
     Fixed(usize),
     Any(&'static str),
@@ -66,4 +65,12 @@ pub fn f32_array<'py>(
     shape: &[Dim],
 ) -> PyResult<PyReadonlyArrayDyn<'py, f32>> {
     typed_array::<f32>(obj, name, "float32", shape)
+}
+
+pub fn f64_array<'py>(
+    obj: &Bound<'py, PyAny>,
+    name: &str,
+    shape: &[Dim],
+) -> PyResult<PyReadonlyArrayDyn<'py, f64>> {
+    typed_array::<f64>(obj, name, "float64", shape)
 }
