@@ -213,7 +213,7 @@ def _blend(proj: Projected, cols: Tensor, rows: Tensor, background: Tensor
     after = torch.cumprod(1 - alpha, dim=1)
     before = torch.cat([torch.ones_like(after[:, :1]), after[:, :-1]], dim=1)
     weights = alpha * before
-    t_final = after[:, -1] if after.shape[1] > 0 else torch.ones_like(dx[:, 0])
+    t_final = after[:, -1] if after.shape[1] > 0 else torch.ones_like(cols, dtype=dx.dtype)
     features = weights @ proj.features + t_final[:, None] * background
     return features, 1 - t_final, weights @ proj.depth
 

@@ -82,3 +82,11 @@ pub fn bool_array<'py>(
 ) -> PyResult<PyReadonlyArrayDyn<'py, bool>> {
     typed_array::<bool>(obj, name, "bool", shape)
 }
+
+pub fn f64_array<'py>(
+    obj: &Bound<'py, PyAny>,
+    name: &str,
+    shape: &[Dim],
+) -> PyResult<PyReadonlyArrayDyn<'py, f64>> {
+    typed_array::<f64>(obj, name, "float64", shape)
+}

@@ -1,7 +1,435 @@
-//! Bindings of the rasterizer (gear_core::splat).
+//! Bindings of the rasterizer (gear_core::splat): the GPU forward/backward pair and the f64
+//! CPU reference pair, with the signatures of the rasterizer contract. Forward returns the
+//! images plus an opaque `RasterState` that backward consumes; the GPU state keeps the device
+//! buffers backward replays, the reference state keeps copies of the inputs.
 
+use gear_core::splat::{
+    self, reference, Accumulation, Camera, ForwardState, GaussianGradients, Gaussians,
+    OutputGradients, RenderOptions, RenderOutput,
+};
+use numpy::{Element, PyArray1, PyArrayMethods, PyUntypedArrayMethods};
+use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
 
-pub fn register(_m: &Bound<'_, PyModule>) -> PyResult<()> {
+use crate::args::{f32_array, f64_array, Dim};
+use crate::errors::guarded;
+
+/// Owned inputs of a reference forward pass, replayed by its backward.
+struct ReferenceInputs {
+    arrays: [Vec<f32>; 5],
+    channels: usize,
+    camera: Camera,
+    options: RenderOptions,
+}
+
+enum StateKind {
+    Gpu(Box<ForwardState>),
+    Reference(Box<ReferenceInputs>),
+}
+
+/// What `rasterize_backward` / `reference_backward` need from the matching forward call.
+#[pyclass(frozen, name = "RasterState", module = "gear._core")]
+pub struct RasterState {
+    kind: StateKind,
+    width: u32,
+    height: u32,
+    channels: usize,
+    depth: bool,
+    /// GPU backward accumulates with compare-and-swap even where float32 atomics exist.
+    force_cas: bool,
+}
+
+#[pymethods]
+impl RasterState {
+    fn __repr__(&self) -> String {
+        let kind = match self.kind {
+            StateKind::Gpu(_) => "gpu",
+            StateKind::Reference(_) => "reference",
+        };
+        format!(
+            "RasterState({kind}, {}x{}, channels={}, depth={})",
+            self.width, self.height, self.channels, self.depth
+        )
+    }
+}
+
+/// The forward arguments, checked and borrowed from numpy.
+struct ForwardArgs<'py> {
+    arrays: [numpy::PyReadonlyArrayDyn<'py, f32>; 5],
+    channels: usize,
+    camera: Camera,
+    options: RenderOptions,
+}
+
+impl ForwardArgs<'_> {
+    fn slices(&self) -> PyResult<[&[f32]; 5]> {
+        let [a, b, c, d, e] = &self.arrays;
+        Ok([
+            a.as_slice()?,
+            b.as_slice()?,
+            c.as_slice()?,
+            d.as_slice()?,
+            e.as_slice()?,
+        ])
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn forward_args<'py>(
+    means: &Bound<'py, PyAny>,
+    quats: &Bound<'py, PyAny>,
+    log_scales: &Bound<'py, PyAny>,
+    opacity_logits: &Bound<'py, PyAny>,
+    features: &Bound<'py, PyAny>,
+    world_to_cam: &Bound<'py, PyAny>,
+    intrinsics: (f32, f32, f32, f32),
+    width: u32,
+    height: u32,
+    background: &Bound<'py, PyAny>,
+    depth: bool,
+) -> PyResult<ForwardArgs<'py>> {
+    let n = Dim::Any("N");
+    let features = f32_array(features, "features", &[n, Dim::Any("C")])?;
+    let channels = features.shape()[1];
+    let arrays = [
+        f32_array(means, "means", &[n, Dim::Fixed(3)])?,
+        f32_array(quats, "quats", &[n, Dim::Fixed(4)])?,
+        f32_array(log_scales, "log_scales", &[n, Dim::Fixed(3)])?,
+        f32_array(opacity_logits, "opacity_logits", &[n])?,
+        features,
+    ];
+    let w2c = f32_array(
+        world_to_cam,
+        "world_to_cam",
+        &[Dim::Fixed(4), Dim::Fixed(4)],
+    )?;
+    let w2c = w2c.as_slice()?;
+    let background = f32_array(background, "background", &[Dim::Fixed(channels)])?;
+    let (fx, fy, cx, cy) = intrinsics;
+    let camera = Camera {
+        world_to_cam: std::array::from_fn(|r| std::array::from_fn(|c| w2c[4 * r + c])),
+        fx,
+        fy,
+        cx,
+        cy,
+        width,
+        height,
+    };
+    let options = RenderOptions {
+        depth,
+        background: background.as_slice()?.to_vec(),
+    };
+    Ok(ForwardArgs {
+        arrays,
+        channels,
+        camera,
+        options,
+    })
+}
+
+fn gaussians<'a>(slices: &[&'a [f32]; 5], channels: usize) -> gear_core::Result<Gaussians<'a>> {
+    Gaussians::from_flat(
+        slices[0], slices[1], slices[2], slices[3], slices[4], channels,
+    )
+}
+
+type Images<'py> = (
+    Bound<'py, PyAny>,
+    Bound<'py, PyAny>,
+    Option<Bound<'py, PyAny>>,
+);
+
+/// Images as numpy arrays: features [H, W, C], alpha [H, W], depth [H, W] or None.
+fn images<'py, T: Element>(
+    py: Python<'py>,
+    out: RenderOutput<T>,
+    width: u32,
+    height: u32,
+    channels: usize,
+) -> PyResult<Images<'py>> {
+    let (h, w) = (height as usize, width as usize);
+    let features = PyArray1::from_vec(py, out.features).reshape([h, w, channels])?;
+    let alpha = PyArray1::from_vec(py, out.alpha).reshape([h, w])?;
+    let depth = out
+        .depth
+        .map(|d| PyArray1::from_vec(py, d).reshape([h, w]))
+        .transpose()?;
+    Ok((
+        features.into_any(),
+        alpha.into_any(),
+        depth.map(Bound::into_any),
+    ))
+}
+
+type Gradients<'py> = (
+    Bound<'py, PyAny>,
+    Bound<'py, PyAny>,
+    Bound<'py, PyAny>,
+    Bound<'py, PyAny>,
+    Bound<'py, PyAny>,
+);
+
+/// Gradients as numpy arrays shaped like the inputs.
+fn gradients<'py, T: Element + Copy>(
+    py: Python<'py>,
+    g: GaussianGradients<T>,
+    channels: usize,
+) -> PyResult<Gradients<'py>> {
+    let n = g.opacity_logits.len();
+    let flat = |rows: Vec<T>, width: usize| PyArray1::from_vec(py, rows).reshape([n, width]);
+    Ok((
+        flat(g.means.concat(), 3)?.into_any(),
+        flat(g.quats.concat(), 4)?.into_any(),
+        flat(g.log_scales.concat(), 3)?.into_any(),
+        PyArray1::from_vec(py, g.opacity_logits).into_any(),
+        flat(g.features, channels)?.into_any(),
+    ))
+}
+
+type ForwardResult<'py> = (
+    Bound<'py, PyAny>,
+    Bound<'py, PyAny>,
+    Option<Bound<'py, PyAny>>,
+    RasterState,
+);
+
+/// Renders on the GPU. `force_cas` makes the later backward accumulate with the
+/// compare-and-swap loop even where float32 atomics exist (to test that path).
+#[pyfunction]
+#[pyo3(signature = (means, quats, log_scales, opacity_logits, features, world_to_cam, intrinsics, width, height, background, depth, force_cas=false))]
+#[allow(clippy::too_many_arguments)]
+fn rasterize_forward<'py>(
+    py: Python<'py>,
+    means: &Bound<'py, PyAny>,
+    quats: &Bound<'py, PyAny>,
+    log_scales: &Bound<'py, PyAny>,
+    opacity_logits: &Bound<'py, PyAny>,
+    features: &Bound<'py, PyAny>,
+    world_to_cam: &Bound<'py, PyAny>,
+    intrinsics: (f32, f32, f32, f32),
+    width: u32,
+    height: u32,
+    background: &Bound<'py, PyAny>,
+    depth: bool,
+    force_cas: bool,
+) -> PyResult<ForwardResult<'py>> {
+    let args = forward_args(
+        means,
+        quats,
+        log_scales,
+        opacity_logits,
+        features,
+        world_to_cam,
+        intrinsics,
+        width,
+        height,
+        background,
+        depth,
+    )?;
+    let slices = args.slices()?;
+    let (camera, options, channels) = (&args.camera, &args.options, args.channels);
+    let (out, state) = guarded(py, || {
+        splat::forward(&gaussians(&slices, channels)?, camera, options)
+    })?;
+    let (f, a, d) = images(py, out, width, height, channels)?;
+    let state = RasterState {
+        kind: StateKind::Gpu(Box::new(state)),
+        width,
+        height,
+        channels,
+        depth,
+        force_cas,
+    };
+    Ok((f, a, d, state))
+}
+
+/// Renders with the f64 CPU reference (outputs float64); same arguments as
+/// `rasterize_forward` (`force_cas` is accepted and ignored).
+#[pyfunction]
+#[pyo3(signature = (means, quats, log_scales, opacity_logits, features, world_to_cam, intrinsics, width, height, background, depth, force_cas=false))]
+#[allow(clippy::too_many_arguments)]
+fn reference_forward<'py>(
+    py: Python<'py>,
+    means: &Bound<'py, PyAny>,
+    quats: &Bound<'py, PyAny>,
+    log_scales: &Bound<'py, PyAny>,
+    opacity_logits: &Bound<'py, PyAny>,
+    features: &Bound<'py, PyAny>,
+    world_to_cam: &Bound<'py, PyAny>,
+    intrinsics: (f32, f32, f32, f32),
+    width: u32,
+    height: u32,
+    background: &Bound<'py, PyAny>,
+    depth: bool,
+    force_cas: bool,
+) -> PyResult<ForwardResult<'py>> {
+    let args = forward_args(
+        means,
+        quats,
+        log_scales,
+        opacity_logits,
+        features,
+        world_to_cam,
+        intrinsics,
+        width,
+        height,
+        background,
+        depth,
+    )?;
+    let slices = args.slices()?;
+    let (camera, options, channels) = (&args.camera, &args.options, args.channels);
+    let out = guarded(py, || {
+        reference::forward(&gaussians(&slices, channels)?, camera, options)
+    })?;
+    let (f, a, d) = images(py, out, width, height, channels)?;
+    let state = RasterState {
+        kind: StateKind::Reference(Box::new(ReferenceInputs {
+            arrays: slices.map(<[f32]>::to_vec),
+            channels,
+            camera: args.camera,
+            options: args.options.clone(),
+        })),
+        width,
+        height,
+        channels,
+        depth,
+        force_cas,
+    };
+    Ok((f, a, d, state))
+}
+
+/// Image gradients as checked numpy views of element type `T`.
+struct ImageGrads<'py, T: Element> {
+    features: numpy::PyReadonlyArrayDyn<'py, T>,
+    alpha: numpy::PyReadonlyArrayDyn<'py, T>,
+    depth: Option<numpy::PyReadonlyArrayDyn<'py, T>>,
+}
+
+impl<T: Element> ImageGrads<'_, T> {
+    fn view(&self) -> PyResult<OutputGradients<'_, T>> {
+        Ok(OutputGradients {
+            features: self.features.as_slice()?,
+            alpha: self.alpha.as_slice()?,
+            depth: self.depth.as_ref().map(|d| d.as_slice()).transpose()?,
+        })
+    }
+}
+
+type ArrayCheck<'py, T> =
+    fn(&Bound<'py, PyAny>, &str, &[Dim]) -> PyResult<numpy::PyReadonlyArrayDyn<'py, T>>;
+
+fn image_grads<'py, T: Element>(
+    state: &RasterState,
+    check: ArrayCheck<'py, T>,
+    grad_features: &Bound<'py, PyAny>,
+    grad_alpha: &Bound<'py, PyAny>,
+    grad_depth: Option<&Bound<'py, PyAny>>,
+) -> PyResult<ImageGrads<'py, T>> {
+    let (h, w) = (
+        Dim::Fixed(state.height as usize),
+        Dim::Fixed(state.width as usize),
+    );
+    Ok(ImageGrads {
+        features: check(
+            grad_features,
+            "grad_features",
+            &[h, w, Dim::Fixed(state.channels)],
+        )?,
+        alpha: check(grad_alpha, "grad_alpha", &[h, w])?,
+        depth: grad_depth
+            .filter(|d| !d.is_none())
+            .map(|d| check(d, "grad_depth", &[h, w]))
+            .transpose()?,
+    })
+}
+
+fn wrong_state(expected: &str) -> PyErr {
+    PyTypeError::new_err(format!(
+        "argument 'state': expected the state returned by {expected}"
+    ))
+}
+
+/// Gradients of the GPU render that produced `state` (float32 arrays shaped like the inputs).
+#[pyfunction]
+#[pyo3(signature = (state, grad_features, grad_alpha, grad_depth=None))]
+fn rasterize_backward<'py>(
+    py: Python<'py>,
+    state: &Bound<'py, RasterState>,
+    grad_features: &Bound<'py, PyAny>,
+    grad_alpha: &Bound<'py, PyAny>,
+    grad_depth: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Gradients<'py>> {
+    let state = state.get();
+    let StateKind::Gpu(forward) = &state.kind else {
+        return Err(wrong_state("rasterize_forward"));
+    };
+    let grads = image_grads(state, f32_array, grad_features, grad_alpha, grad_depth)?;
+    let view = grads.view()?;
+    let accumulation = if state.force_cas {
+        Accumulation::CompareAndSwap
+    } else {
+        Accumulation::Auto
+    };
+    let g = guarded(py, || splat::backward(forward, &view, accumulation))?;
+    gradients(py, g, state.channels)
+}
+
+/// Gradients of the reference render that produced `state` (float64; image gradients may be
+/// float64 or float32).
+#[pyfunction]
+#[pyo3(signature = (state, grad_features, grad_alpha, grad_depth=None))]
+fn reference_backward<'py>(
+    py: Python<'py>,
+    state: &Bound<'py, RasterState>,
+    grad_features: &Bound<'py, PyAny>,
+    grad_alpha: &Bound<'py, PyAny>,
+    grad_depth: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Gradients<'py>> {
+    let state = state.get();
+    let StateKind::Reference(inputs) = &state.kind else {
+        return Err(wrong_state("reference_forward"));
+    };
+    let is_f32 = grad_features
+        .getattr("dtype")
+        .is_ok_and(|d| d.to_string() == "float32");
+    // Keeps whichever form the gradients arrived in alive while `view` borrows it.
+    let widened: [Vec<f64>; 3];
+    let as_f64;
+    let view = if is_f32 {
+        let narrow = image_grads(state, f32_array, grad_features, grad_alpha, grad_depth)?;
+        let v = narrow.view()?;
+        let widen = |s: &[f32]| s.iter().map(|&x| f64::from(x)).collect::<Vec<f64>>();
+        widened = [
+            widen(v.features),
+            widen(v.alpha),
+            widen(v.depth.unwrap_or_default()),
+        ];
+        OutputGradients {
+            features: &widened[0][..],
+            alpha: &widened[1][..],
+            depth: v.depth.map(|_| &widened[2][..]),
+        }
+    } else {
+        as_f64 = image_grads(state, f64_array, grad_features, grad_alpha, grad_depth)?;
+        as_f64.view()?
+    };
+    let slices: [&[f32]; 5] = std::array::from_fn(|k| inputs.arrays[k].as_slice());
+    let g = guarded(py, || {
+        reference::backward(
+            &gaussians(&slices, inputs.channels)?,
+            &inputs.camera,
+            &inputs.options,
+            &view,
+        )
+    })?;
+    gradients(py, g, state.channels)
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<RasterState>()?;
+    m.add_function(wrap_pyfunction!(rasterize_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(rasterize_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(reference_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(reference_backward, m)?)?;
     Ok(())
 }

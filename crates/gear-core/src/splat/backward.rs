@@ -106,7 +106,7 @@ pub(crate) fn backward_impl(
     dispatch(
         ctx,
         &mut encoder,
-        &kernels::project_backward(),
+        &kernels::project_backward(state.variant),
         &[
             (0, storage(&state.inputs[0])),
             (1, storage(&state.inputs[1])),
@@ -114,6 +114,7 @@ pub(crate) fn backward_impl(
             (3, storage(&state.inputs[3])),
             (4, storage(&geometry)),
             (5, storage(&gradients)),
+            (7, storage(&state.inputs[4])),
             (15, frame),
         ],
         groups(n as u32, WG),

@@ -14,7 +14,7 @@ use crate::gpu::{GpuContext, PooledBuffer};
 use super::frame::Frame;
 use super::kernels::{self, dispatch, groups, storage, uniform, PixelVariant, WG};
 use super::scan::encode_exclusive_scan;
-use super::sort::{bits_for, encode_radix_sort, Pairs};
+use super::sort::{bits_for, encode_index_sort, encode_radix_sort, Pairs};
 use super::types::{Camera, Gaussians, RenderOptions, RenderOutput};
 
 #[repr(C)]
@@ -110,15 +110,12 @@ pub(crate) fn forward_impl(
     // Submission 1: project, depth sort, tile counts in depth order, their scan.
     let projected = ctx.storage::<[f32; 8]>(n as usize)?;
     let rects = ctx.storage::<[u32; 4]>(n as usize)?;
-    let depth_pairs = Pairs {
-        keys: ctx.storage::<u32>(n as usize)?,
-        values: ctx.storage::<u32>(n as usize)?,
-    };
+    let depth_keys = ctx.storage::<u32>(n as usize)?;
     let mut encoder = ctx.device.create_command_encoder(&Default::default());
     dispatch(
         ctx,
         &mut encoder,
-        &kernels::project(),
+        &kernels::project(variant),
         &[
             (0, storage(&inputs[0])),
             (1, storage(&inputs[1])),
@@ -126,13 +123,13 @@ pub(crate) fn forward_impl(
             (3, storage(&inputs[3])),
             (4, storage(&projected)),
             (5, storage(&rects)),
-            (6, storage(&depth_pairs.keys)),
-            (7, storage(&depth_pairs.values)),
+            (6, storage(&depth_keys)),
+            (7, storage(&inputs[4])),
             (15, frame_buffer.as_entire_binding()),
         ],
         groups(n, WG),
     );
-    let by_depth = encode_radix_sort(ctx, &mut encoder, depth_pairs, n, 32, &mut keep)?;
+    let by_depth = encode_index_sort(ctx, &mut encoder, depth_keys, n, 32, &mut keep)?;
     let offsets = ctx.storage::<u32>(n as usize + 1)?;
     let count_params = uniform(ctx, &CountParams { n });
     dispatch(

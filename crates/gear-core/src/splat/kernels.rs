@@ -80,12 +80,12 @@ impl PixelVariant {
     }
 }
 
-pub fn project() -> ShaderSpec {
-    with_contract(ShaderSpec::new("splat_project", PROJECT, "main"))
+pub fn project(variant: PixelVariant) -> ShaderSpec {
+    variant.apply(ShaderSpec::new("splat_project", PROJECT, "main"))
 }
 
-pub fn project_backward() -> ShaderSpec {
-    with_contract(ShaderSpec::new(
+pub fn project_backward(variant: PixelVariant) -> ShaderSpec {
+    variant.apply(ShaderSpec::new(
         "splat_project_backward",
         PROJECT_BACKWARD,
         "main",
@@ -135,13 +135,23 @@ pub fn radix_count(bits: u32) -> ShaderSpec {
     .with("BITS", format!("{bits}u"))
 }
 
-pub fn radix_scatter(bits: u32) -> ShaderSpec {
-    ShaderSpec::new(
-        "splat_radix_scatter",
+/// The scatter step; `identity_values` makes the payload each element's input position
+/// (no values buffer is bound then).
+pub fn radix_scatter(bits: u32, identity_values: bool) -> ShaderSpec {
+    const FROM_BUFFER: &str = concat!(
+        include_str!("../shaders/splat/radix_values_buffer.wgsl"),
         include_str!("../shaders/splat/radix_scatter.wgsl"),
-        "main",
-    )
-    .with("BITS", format!("{bits}u"))
+    );
+    const IDENTITY: &str = concat!(
+        include_str!("../shaders/splat/radix_values_identity.wgsl"),
+        include_str!("../shaders/splat/radix_scatter.wgsl"),
+    );
+    let (name, source) = if identity_values {
+        ("splat_radix_scatter_identity", IDENTITY)
+    } else {
+        ("splat_radix_scatter", FROM_BUFFER)
+    };
+    ShaderSpec::new(name, source, "main").with("BITS", format!("{bits}u"))
 }
 
 pub fn tile_counts() -> ShaderSpec {

@@ -49,16 +49,52 @@ pub fn encode_radix_sort(
     if n <= 1 || bits == 0 {
         return Ok(pairs);
     }
+    encode_passes(ctx, encoder, pairs.keys, Some(pairs.values), n, bits, keep)
+}
+
+/// Records a stable sort of `keys` by their low `bits` bits; the result's values are the
+/// sorting permutation (each element's original position).
+pub fn encode_index_sort(
+    ctx: &'static GpuContext,
+    encoder: &mut wgpu::CommandEncoder,
+    keys: PooledBuffer,
+    n: u32,
+    bits: u32,
+    keep: &mut Vec<PooledBuffer>,
+) -> Result<Pairs> {
+    if n <= 1 || bits == 0 {
+        let identity: Vec<u32> = (0..n).collect();
+        let values = ctx.upload(&identity)?;
+        return Ok(Pairs { keys, values });
+    }
+    encode_passes(ctx, encoder, keys, None, n, bits, keep)
+}
+
+/// The passes of both sorts; `values: None` means "the identity" on the first pass.
+fn encode_passes(
+    ctx: &'static GpuContext,
+    encoder: &mut wgpu::CommandEncoder,
+    keys: PooledBuffer,
+    values: Option<PooledBuffer>,
+    n: u32,
+    bits: u32,
+    keep: &mut Vec<PooledBuffer>,
+) -> Result<Pairs> {
     let passes = bits.div_ceil(MAX_DIGIT_BITS);
     let digit_bits = bits.div_ceil(passes);
     let chunk = n.div_ceil(MAX_THREADS).max(MIN_CHUNK);
     let threads = n.div_ceil(chunk);
     let hist = ctx.storage::<u32>((threads << digit_bits) as usize)?;
-    let mut current = pairs;
-    let mut spare = Pairs {
-        keys: ctx.storage::<u32>(n as usize)?,
-        values: ctx.storage::<u32>(n as usize)?,
+    let mut keys = keys;
+    let mut spare_keys = ctx.storage::<u32>(n as usize)?;
+    // Without input values the first pass generates them (the identity) and binds none;
+    // later passes still need two full value buffers to ping-pong.
+    let identity_first = values.is_none();
+    let mut values = match values {
+        Some(v) => v,
+        None => ctx.storage::<u32>(n as usize)?,
     };
+    let mut spare_values = ctx.storage::<u32>(n as usize)?;
     for pass in 0..passes {
         let params = uniform(
             ctx,
@@ -74,31 +110,36 @@ pub fn encode_radix_sort(
             encoder,
             &kernels::radix_count(digit_bits),
             &[
-                (0, storage(&current.keys)),
+                (0, storage(&keys)),
                 (1, storage(&hist)),
                 (2, params.as_entire_binding()),
             ],
             groups(threads, SORT_WG),
         );
         encode_exclusive_scan(ctx, encoder, &hist, threads << digit_bits, keep)?;
+        let identity = identity_first && pass == 0;
+        let mut bindings = vec![
+            (0, storage(&keys)),
+            (2, storage(&hist)),
+            (3, storage(&spare_keys)),
+            (4, storage(&spare_values)),
+            (5, params.as_entire_binding()),
+        ];
+        if !identity {
+            bindings.push((1, storage(&values)));
+        }
         dispatch(
             ctx,
             encoder,
-            &kernels::radix_scatter(digit_bits),
-            &[
-                (0, storage(&current.keys)),
-                (1, storage(&current.values)),
-                (2, storage(&hist)),
-                (3, storage(&spare.keys)),
-                (4, storage(&spare.values)),
-                (5, params.as_entire_binding()),
-            ],
+            &kernels::radix_scatter(digit_bits, identity),
+            &bindings,
             groups(threads, SORT_WG),
         );
-        std::mem::swap(&mut current, &mut spare);
+        std::mem::swap(&mut keys, &mut spare_keys);
+        std::mem::swap(&mut values, &mut spare_values);
     }
-    keep.extend([hist, spare.keys, spare.values]);
-    Ok(current)
+    keep.extend([hist, spare_keys, spare_values]);
+    Ok(Pairs { keys, values })
 }
 
 /// Bits needed to represent every value below `count` (0 when count <= 1).
@@ -149,6 +190,35 @@ mod tests {
             assert_eq!(got_values, expected, "len {len} bits {bits}");
             let expected_keys: Vec<u32> = expected.iter().map(|&i| keys[i as usize]).collect();
             assert_eq!(got_keys, expected_keys);
+        }
+    }
+
+    #[test]
+    fn index_sort_returns_the_stable_permutation() {
+        let ctx = GpuContext::global().unwrap();
+        for len in [1usize, 3, 40_000] {
+            let keys: Vec<u32> = (0..len as u32)
+                .map(|i| (i * 7919) % 1013 * 3_000_000)
+                .collect();
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            let mut keep = Vec::new();
+            let sorted = encode_index_sort(
+                ctx,
+                &mut encoder,
+                ctx.upload(&keys).unwrap(),
+                len as u32,
+                32,
+                &mut keep,
+            )
+            .unwrap();
+            ctx.queue.submit(Some(encoder.finish()));
+            let mut expected: Vec<u32> = (0..len as u32).collect();
+            expected.sort_by_key(|&i| keys[i as usize]);
+            assert_eq!(
+                ctx.read::<u32>(&sorted.values, len).unwrap(),
+                expected,
+                "len {len}"
+            );
         }
     }
 

@@ -183,7 +183,9 @@ impl ImageError {
         let over = gpu
             .iter()
             .zip(reference)
-            .filter(|(&g, &r)| (f64::from(g) - r).abs().partial_cmp(&1e-4) != Some(std::cmp::Ordering::Less))
+            .filter(|(&g, &r)| {
+                (f64::from(g) - r).abs().partial_cmp(&1e-4) != Some(std::cmp::Ordering::Less)
+            })
             .count();
         ImageError {
             max: max_abs_diff(gpu, reference),
@@ -422,6 +424,22 @@ fn hard_cases_stay_finite() {
             "culled Gaussian {culled} got a gradient"
         );
         assert_eq!(g.opacity_logits[culled], 0.0);
+    }
+
+    let mut non_finite = Scene::random(40, 3, 21);
+    non_finite.means[3][1] = f32::NAN;
+    non_finite.quats[5][0] = f32::INFINITY;
+    non_finite.log_scales[7][2] = f32::NEG_INFINITY;
+    non_finite.features[8 * 3] = f32::NAN;
+    // exp overflows f32 (culled here, not by the f64 reference: no reference comparison).
+    non_finite.log_scales[10] = [100.0; 3];
+    let g = check_finite("non-finite inputs", &non_finite, &camera(40, 30), false);
+    for culled in [3, 5, 7, 8, 10] {
+        assert_eq!(
+            g.means[culled], [0.0; 3],
+            "culled Gaussian {culled} got a gradient"
+        );
+        assert_eq!(g.features[3 * culled..3 * culled + 3], [0.0; 3]);
     }
 
     let mut scales = Scene {

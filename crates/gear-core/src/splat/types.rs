@@ -63,6 +63,42 @@ pub struct Gaussians<'a> {
     pub channels: usize,
 }
 
+impl<'a> Gaussians<'a> {
+    /// Views flat arrays (means 3N, quats 4N, log_scales 3N, opacity N, features N x
+    /// `channels`) as Gaussians; errors name the array whose length is not a whole number of
+    /// rows.
+    pub fn from_flat(
+        means: &'a [f32],
+        quats: &'a [f32],
+        log_scales: &'a [f32],
+        opacity_logits: &'a [f32],
+        features: &'a [f32],
+        channels: usize,
+    ) -> Result<Self> {
+        for (name, len, width) in [
+            ("means", means.len(), 3),
+            ("quats", quats.len(), 4),
+            ("log_scales", log_scales.len(), 3),
+        ] {
+            if len % width != 0 {
+                return Err(GearError::InvalidInput(format!(
+                    "{name}: expected rows of {width} values, got {len} values"
+                )));
+            }
+        }
+        let gaussians = Gaussians {
+            means: bytemuck::cast_slice(means),
+            quats: bytemuck::cast_slice(quats),
+            log_scales: bytemuck::cast_slice(log_scales),
+            opacity_logits,
+            features,
+            channels,
+        };
+        gaussians.validate()?;
+        Ok(gaussians)
+    }
+}
+
 impl Gaussians<'_> {
     pub fn len(&self) -> usize {
         self.means.len()

@@ -5,6 +5,7 @@
 @group(0) @binding(1) var<storage, read> quats: array<f32>;
 @group(0) @binding(2) var<storage, read> log_scales: array<f32>;
 @group(0) @binding(3) var<storage, read> opacity_logits: array<f32>;
+@group(0) @binding(7) var<storage, read> features: array<f32>;
 
 struct Projection {
     visible: bool,
@@ -50,6 +51,15 @@ fn all_finite4(v: vec4<f32>) -> bool {
     return is_finite(v.x) && is_finite(v.y) && is_finite(v.z) && is_finite(v.w);
 }
 
+// The contract culls a Gaussian with any non-finite input, features included.
+fn features_finite(i: u32) -> bool {
+    var ok = true;
+    for (var c = 0u; c < CHANNELS; c++) {
+        ok = ok && is_finite(features[i * CHANNELS + c]);
+    }
+    return ok;
+}
+
 fn project_gaussian(i: u32) -> Projection {
     var p: Projection;
     p.visible = false;
@@ -57,7 +67,9 @@ fn project_gaussian(i: u32) -> Projection {
     let q = vec4<f32>(quats[4u * i], quats[4u * i + 1u], quats[4u * i + 2u], quats[4u * i + 3u]);
     let ls = vec3<f32>(log_scales[3u * i], log_scales[3u * i + 1u], log_scales[3u * i + 2u]);
     let logit = opacity_logits[i];
-    if !(all_finite4(vec4<f32>(m, logit)) && all_finite4(q) && all_finite4(vec4<f32>(ls, 0.0))) {
+    let finite = all_finite4(vec4<f32>(m, logit)) && all_finite4(q)
+        && all_finite4(vec4<f32>(ls, 0.0)) && features_finite(i);
+    if !finite {
         return p;
     }
     let w_rot = world_rotation();

@@ -1,7 +1,8 @@
 // Radix sort pass, step 3: each thread walks its chunk in order and moves every (key, value)
 // to the next free slot of its digit (hist holds the scanned counts of radix_count.wgsl).
 // Walking in order within a chunk, and chunks in order within a digit, makes the pass stable.
-// Specialised with: BITS (digit width).
+// Specialised with: BITS (digit width); prefixed with radix_values_*.wgsl, which defines
+// value_at(i) (the input values, or the identity on the first pass of an index sort).
 
 struct SortParams {
     n: u32,
@@ -11,7 +12,6 @@ struct SortParams {
 }
 
 @group(0) @binding(0) var<storage, read> keys_in: array<u32>;
-@group(0) @binding(1) var<storage, read> values_in: array<u32>;
 @group(0) @binding(2) var<storage, read_write> hist: array<u32>;
 @group(0) @binding(3) var<storage, read_write> keys_out: array<u32>;
 @group(0) @binding(4) var<storage, read_write> values_out: array<u32>;
@@ -33,6 +33,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         let dst = hist[slot];
         hist[slot] = dst + 1u;
         keys_out[dst] = key;
-        values_out[dst] = values_in[i];
+        values_out[dst] = value_at(i);
     }
 }
