@@ -11,6 +11,7 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from gear.cli import main
+from gear.kinematics import dq_sclerp
 from gear.twin import Twin, TwinError, read_ply_vertices
 from twin_outdir import (
     COLORS,
@@ -87,6 +88,18 @@ def test_start_leaves_gaussians_in_place_and_half_is_half(twin):
                                                                                 1)), atol=POS_TOL)
 
 
+@pytest.mark.parametrize("s", [0.25, 0.5, 0.8])
+def test_intermediate_states_match_training_screw_interpolation(twin, s):
+    # Training interpolates a part's motion with kinematics.dq_sclerp; the twin's states
+    # must be the same motions (angles below 180 degrees).
+    qr1, qd1 = twin.part_motions(1.0)
+    qr_s, qd_s = twin.part_motions(s)
+    want_r, want_d = dq_sclerp(qr1, qd1, s)
+    sign = torch.sign((want_r * qr_s).sum(-1, keepdim=True))  # q and -q are the same motion
+    torch.testing.assert_close(qr_s, sign * want_r, atol=1e-12, rtol=0)
+    torch.testing.assert_close(qd_s, sign * want_d, atol=1e-12, rtol=0)
+
+
 def test_canonical_end_is_posed_back_to_start(tmp_path, twin):
     end_twin = Twin.load(make_out_dir(tmp_path / "end", canonical="end"))
     assert end_twin.canonical == "end"
@@ -140,6 +153,9 @@ def _broken(out_dir, tmp_path, edit):
             {"canonical": "start", "joints": [{**HINGE, "angle_deg": None}, SLIDE]})),
          r"joints\[0\]: angle_deg must be a finite number"),
         (lambda d: (d / "joints.json").write_text(json.dumps(
+            {"canonical": "start", "joints": [HINGE, {**SLIDE, "origin": None}]})),
+         r"joints\[1\] origin: expected 3 finite numbers"),
+        (lambda d: (d / "joints.json").write_text(json.dumps(
             {"canonical": "middle", "joints": []})), r"canonical must be 'start' or 'end'"),
         (lambda d: (d / "gaussians_canonical.ply").unlink(), r"gaussians_canonical\.ply: missing"),
         (lambda d: (d / "gaussians_canonical.ply").write_bytes(
@@ -181,6 +197,7 @@ def _red_centroid(rgb: np.ndarray) -> np.ndarray:
 def test_render_moves_the_door_pixels(twin):
     cam = front_camera(48)
     images = {s: twin.render(s, cam).features.numpy() for s in (0.0, 1.0)}
+    assert twin.render(0.5, cam, depth=True).depth is not None
     for img in images.values():
         assert np.all(np.isfinite(img))
     # The door's red pixels follow the door: their centroid lands near the projection of the

@@ -76,7 +76,7 @@ def start_meshes(out_dir: Path, joints: list[TwinJoint],
 
 
 def _num(x: float) -> str:
-    return f"{float(x) + 0.0:.9g}"  # + 0.0 turns -0.0 into 0
+    return f"{float(x) + 0.0:.15g}"  # + 0.0 turns -0.0 into 0
 
 
 def _xyz(v: np.ndarray) -> str:

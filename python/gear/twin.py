@@ -122,7 +122,13 @@ class TwinJoint:
         return quat_to_matrix(qr).numpy(), dq_to_rt(qr, qd)[1].numpy()
 
     def dual_quaternion(self, fraction: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """The same motion as a unit dual quaternion (float64), the form kinematics blends."""
+        """The same motion as a unit dual quaternion (float64), the form kinematics blends.
+
+        Built from the axis and the scaled amount rather than by kinematics.dq_sclerp of the
+        full motion: ScLERP follows the shorter screw, which would turn a joint of more than
+        180 degrees the wrong way, and a canonical "end" state needs negative fractions. For
+        angles below 180 degrees both agree (tests/test_twin.py checks it).
+        """
         axis = torch.as_tensor(self.axis, dtype=torch.float64)
         origin = torch.as_tensor(self.origin, dtype=torch.float64)
         if self.type == "prismatic":
@@ -155,7 +161,7 @@ def _joint(entry: object, index: int, path: Path) -> TwinJoint:
     norm = float(np.linalg.norm(axis))
     if norm < 1e-9:
         raise TwinError(f"{what}: axis is the zero vector")
-    origin = _vector(entry.get("origin", [0.0, 0.0, 0.0]), f"{what} origin")
+    origin = _vector(entry.get("origin"), f"{what} origin")
     key = "angle_deg" if kind == "revolute" else "distance"
     amount = entry.get(key)
     if isinstance(amount, bool) or not isinstance(amount, (int, float)) or not math.isfinite(
@@ -260,15 +266,16 @@ class Twin:
         means, quats = deform(self.means.double(), self.quats.double(), onehot, qr, qd)
         return means.float(), quats.float()
 
-    def render(self, s: float, camera: Camera, background: torch.Tensor | None = None):  # noqa: ANN201
-        """RenderOutput (features = RGB [H,W,3], alpha, depth) of the twin at state s."""
+    def render(self, s: float, camera: Camera, background: torch.Tensor | None = None,  # noqa: ANN201
+               depth: bool = False):
+        """RenderOutput (features = RGB [H,W,3], alpha, depth if asked) of the twin at s."""
         from gear.model import render
 
         means, quats = self.pose(s)
         bg = torch.zeros(3) if background is None else background.float()
         with torch.no_grad():
             return render(means, quats, self.log_scales, self.opacity, self.rgb, camera, bg,
-                          depth=True)
+                          depth=depth)
 
     def bounds(self, states: list[float]) -> tuple[np.ndarray, float]:
         """(centre [3], radius) of a sphere holding the opaque Gaussians at every state; the
