@@ -240,12 +240,16 @@ class Twin:
             raise TwinError(f"{ply}: {int(bad.sum())} Gaussian(s) with non-finite values "
                             f"(first: vertex {int(np.argmax(bad))})")
         parts = _part_ids(out_dir, props, len(table), len(joints))
+
+        def column(*names: str) -> np.ndarray:
+            return _float_column(props, names)
+
         return cls(
-            means=_f32(table[:, 0:3]),
-            quats=_f32(table[:, 10:14]),
-            log_scales=_f32(table[:, 7:10]),
-            opacity=_f32(table[:, 6]),
-            rgb=_f32(np.clip(0.5 + SH_C0 * table[:, 3:6], 0.0, 1.0)),
+            means=_f32(column("x", "y", "z")),
+            quats=_f32(column("rot_0", "rot_1", "rot_2", "rot_3")),
+            log_scales=_f32(column("scale_0", "scale_1", "scale_2")),
+            opacity=_f32(column("opacity")[:, 0]),
+            rgb=_f32(np.clip(0.5 + SH_C0 * column("f_dc_0", "f_dc_1", "f_dc_2"), 0.0, 1.0)),
             parts=torch.as_tensor(parts, dtype=torch.int64),
             joints=joints,
             canonical=canonical,
