@@ -206,3 +206,18 @@ def test_eval_bad_joint_names_the_file(tmp_path):
                                                             "axis": [0, 0, 0]}]}))
     with pytest.raises(ValueError, match=r"joints\.json: joints\[0\]\.axis: zero-length"):
         evaluate(out, scene, samples=100)
+
+
+def test_eval_empty_or_missing_predicted_mesh_is_reported(tmp_path):
+    scene = make_scene(tmp_path / "scene")
+    out = tmp_path / "out"
+    make_output(out)
+    trimesh.Trimesh().export(out / "meshes" / "end" / "part_0.ply")  # a part that vanished
+    (out / "meshes" / "start" / "static.ply").unlink()
+    m = evaluate(out, scene, samples=500)
+    reasons = " ".join(m["skipped"])
+    assert "end/part_0.ply empty: CD of end/part_1 not computed" in reasons
+    assert "start/static.ply missing" in reasons
+    assert set(m["chamfer"]["end"]) == {"whole", "static", "part_0"}
+    assert set(m["chamfer"]["start"]) == {"whole", "part_0", "part_1"}
+    assert m["cd_s"] == pytest.approx(m["chamfer"]["end"]["static"])  # the one state left
