@@ -57,3 +57,25 @@ def test_composite_over_background():
     alpha = torch.tensor([[0.25]])
     out = composite(rgb, alpha, torch.tensor([0.0, 0.0, 1.0]))
     assert torch.allclose(out, torch.tensor([[[0.25, 0.0, 0.75]]]))
+
+
+def test_separable_ssim_matches_a_direct_2d_window():
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(2)
+    a, b = torch.rand(20, 17, 3, generator=g), torch.rand(20, 17, 3, generator=g)
+    x = torch.arange(11, dtype=torch.float32) - 5
+    w1 = torch.exp(-(x**2) / (2 * 1.5**2))
+    w1 = w1 / w1.sum()
+    window = (w1[:, None] * w1[None, :]).expand(3, 1, 11, 11)
+
+    def blur(t):
+        return F.conv2d(t, window, padding=5, groups=3)
+
+    xa, xb = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
+    mx, my = blur(xa), blur(xb)
+    vx, vy, cxy = blur(xa * xa) - mx**2, blur(xb * xb) - my**2, blur(xa * xb) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    expected = ((2 * mx * my + c1) * (2 * cxy + c2)
+                / ((mx**2 + my**2 + c1) * (vx + vy + c2))).mean()
+    assert float(ssim(a, b)) == pytest.approx(float(expected), abs=1e-5)

@@ -11,29 +11,33 @@ _SSIM_C1 = 0.01**2
 _SSIM_C2 = 0.03**2
 
 
-def _gaussian_window(channels: int, dtype: torch.dtype) -> torch.Tensor:
+def _gaussian_kernel(dtype: torch.dtype) -> torch.Tensor:
     x = torch.arange(_SSIM_WINDOW, dtype=dtype) - (_SSIM_WINDOW - 1) / 2
     g = torch.exp(-(x**2) / (2 * _SSIM_SIGMA**2))
-    g = g / g.sum()
-    return (g[:, None] * g[None, :]).expand(channels, 1, _SSIM_WINDOW, _SSIM_WINDOW).contiguous()
+    return g / g.sum()
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Mean structural similarity of two [H,W,C] images in [0,1] (11x11 Gaussian window)."""
+    """Mean structural similarity of two [H,W,C] images in [0,1] (11x11 Gaussian window,
+    zero padding), computed with a separable blur (two 1-D passes)."""
     if a.shape != b.shape or a.dim() != 3:
         raise ValueError(f"ssim: expected two [H,W,C] images of one shape: {a.shape}, {b.shape}")
     channels = a.shape[2]
-    window = _gaussian_window(channels, a.dtype)
-    x = a.permute(2, 0, 1)[None]
-    y = b.permute(2, 0, 1)[None]
-
-    def blur(t: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(t, window, padding=_SSIM_WINDOW // 2, groups=channels)
-
-    mu_x, mu_y = blur(x), blur(y)
-    var_x = blur(x * x) - mu_x**2
-    var_y = blur(y * y) - mu_y**2
-    cov = blur(x * y) - mu_x * mu_y
+    g = _gaussian_kernel(a.dtype)
+    pad = _SSIM_WINDOW // 2
+    # the five blurred maps in one batch: x, y, x², y², xy
+    x = a.permute(2, 0, 1)
+    y = b.permute(2, 0, 1)
+    stack = torch.cat([x, y, x * x, y * y, x * y])[None]
+    n = stack.shape[1]
+    rows = g.reshape(1, 1, 1, -1).expand(n, 1, 1, _SSIM_WINDOW)
+    cols = g.reshape(1, 1, -1, 1).expand(n, 1, _SSIM_WINDOW, 1)
+    blurred = F.conv2d(F.conv2d(stack, rows, padding=(0, pad), groups=n), cols,
+                       padding=(pad, 0), groups=n)[0]
+    mu_x, mu_y, xx, yy, xy = blurred.split(channels)
+    var_x = xx - mu_x**2
+    var_y = yy - mu_y**2
+    cov = xy - mu_x * mu_y
     num = (2 * mu_x * mu_y + _SSIM_C1) * (2 * cov + _SSIM_C2)
     den = (mu_x**2 + mu_y**2 + _SSIM_C1) * (var_x + var_y + _SSIM_C2)
     return (num / den).mean()
