@@ -11,6 +11,7 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from gear.cli import main
+from gear.commands.render import PART_PALETTE, orbit_cameras
 from gear.kinematics import dq_sclerp
 from gear.twin import Twin, TwinError, read_ply_vertices
 from twin_outdir import (
@@ -229,6 +230,28 @@ def test_render_command_writes_states_and_animation(out_dir, tmp_path):
     strip = Image.open(dest / "animation" / "strip.png")
     assert strip.size == (96, 32)
     assert Image.open(dest / "animation" / "animation.gif").n_frames == 3
+
+
+def test_part_colours_and_framing(out_dir, tmp_path, twin):
+    dest = tmp_path / "parts"
+    assert main(["render", str(out_dir), "--t", "1", "--views", "3", "--res", "40", "--color",
+                 "parts", "--background", "0", "0", "0", "--out", str(dest)]) == 0
+    pixels = np.concatenate([
+        np.asarray(Image.open(dest / "s1.000" / f"{v:03d}.png")).reshape(-1, 3) / 255.0
+        for v in range(3)])
+    # Where one part covers a pixel fully, the pixel is that part's palette colour; every part
+    # shows up in some view, and (nearly) every covered pixel is one of the three colours.
+    covered = pixels[pixels.max(-1) > 0.55]
+    near = np.stack([np.abs(covered - c).max(-1) < 0.06 for c in PART_PALETTE[:3]])
+    assert np.all(near.sum(1) > 10)
+    assert near.any(0).mean() > 0.8
+    # The orbit frames the whole object at every state: every Gaussian projects into the image.
+    center, radius = twin.bounds([0.0, 1.0])
+    for cam in orbit_cameras(center, radius, np.array([0.0, 120.0, 240.0]), 25.0,
+                             np.array([0.0, 0.0, 1.0]), 40):
+        for s in (0.0, 1.0):
+            uv, z = cam.project(twin.pose(s)[0].double().numpy())
+            assert np.all(z > 0) and np.all((uv > 0) & (uv < 40))
 
 
 def test_render_command_rejects_bad_state(out_dir, capsys):

@@ -33,6 +33,7 @@ PLY_NAME = "gaussians_canonical.ply"
 PARTS_NAME = "parts.npy"
 JOINTS_NAME = "joints.json"
 STATE_VALUE = {"start": 0.0, "end": 1.0}
+VISIBLE_OPACITY = 0.1  # Gaussians fainter than this do not decide where the object is
 SH_C0 = 0.28209479177387814  # degree-0 spherical harmonic: rgb = 0.5 + SH_C0 * f_dc
 # Vertex properties a Gaussian PLY must carry (3D Gaussian Splatting names).
 REQUIRED_PROPERTIES = (
@@ -271,27 +272,31 @@ class Twin:
         return means.float(), quats.float()
 
     def render(self, s: float, camera: Camera, background: torch.Tensor | None = None,  # noqa: ANN201
-               depth: bool = False):
-        """RenderOutput (features = RGB [H,W,3], alpha, depth if asked) of the twin at s."""
+               depth: bool = False, colors: torch.Tensor | None = None):
+        """RenderOutput (features [H,W,C], alpha, depth if asked) of the twin at s: its RGB, or
+        `colors` [N,C] per Gaussian (e.g. a colour per part) over `background` [C]."""
         from gear.model import render
 
         means, quats = self.pose(s)
-        bg = torch.zeros(3) if background is None else background.float()
+        feats = self.rgb if colors is None else colors.float()
+        bg = torch.zeros(feats.shape[1]) if background is None else background.float()
         with torch.no_grad():
-            return render(means, quats, self.log_scales, self.opacity, self.rgb, camera, bg,
+            return render(means, quats, self.log_scales, self.opacity, feats, camera, bg,
                           depth=depth)
 
     def bounds(self, states: list[float]) -> tuple[np.ndarray, float]:
-        """(centre [3], radius) of a sphere holding the opaque Gaussians at every state; the
-        1% farthest are ignored so a stray floater does not shrink the object in view."""
-        solid = torch.sigmoid(self.opacity) > 0.5
-        if int(solid.sum()) < 4:
-            solid = torch.ones_like(solid)
-        pts = np.concatenate([self.pose(s)[0][solid].numpy() for s in states]).astype(np.float64)
+        """(centre [3], radius) of a sphere holding the visible Gaussians (opacity >= 0.1) at
+        every state, with room for their size; the 0.5% farthest are ignored so a stray
+        floater does not shrink the object in view."""
+        visible = torch.sigmoid(self.opacity) >= VISIBLE_OPACITY
+        if int(visible.sum()) < 4:
+            visible = torch.ones_like(visible)
+        pts = np.concatenate([self.pose(s)[0][visible].numpy() for s in states]).astype(np.float64)
         lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
         center = (lo + hi) / 2
-        radius = float(np.percentile(np.linalg.norm(pts - center, axis=1), 99.0))
-        return center, max(radius, 1e-6)
+        radius = float(np.percentile(np.linalg.norm(pts - center, axis=1), 99.5))
+        size = float(torch.exp(self.log_scales[visible].max(dim=1).values).median())
+        return center, max(radius + 2.0 * size, 1e-6)
 
 
 def _f32(array: np.ndarray) -> torch.Tensor:

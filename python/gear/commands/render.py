@@ -19,6 +19,12 @@ from gear.camera import Camera
 FOV_X = np.deg2rad(40.0)
 MARGIN = 1.15  # the object's bounding sphere fills the view with this much room
 _AXES = {"x": 0, "y": 1, "z": 2}
+# --color parts: static part grey, movable parts in distinct hues (cycled past 9 parts).
+PART_PALETTE = np.array([
+    [0.6, 0.6, 0.6], [0.89, 0.1, 0.11], [0.22, 0.49, 0.72], [0.3, 0.69, 0.29],
+    [0.6, 0.31, 0.64], [1.0, 0.5, 0.0], [0.65, 0.34, 0.16], [0.97, 0.51, 0.75],
+    [0.1, 0.75, 0.8], [0.9, 0.8, 0.1],
+], dtype=np.float32)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,6 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="camera elevation above the orbit plane, degrees (default 25)")
     p.add_argument("--up", default="z", choices=["x", "y", "z", "-x", "-y", "-z"],
                    help="world axis the orbit turns about (default z)")
+    p.add_argument("--color", choices=["rgb", "parts"], default="rgb",
+                   help="rgb (the trained colours) or parts (a flat colour per part: grey "
+                        "static, then red, blue, green, ... for joints[0], joints[1], ...)")
     p.add_argument("--background", type=float, nargs=3, default=[1.0, 1.0, 1.0],
                    metavar=("R", "G", "B"), help="background colour in [0, 1] (default white)")
     p.add_argument("--out", type=Path, default=None,
@@ -86,6 +95,14 @@ def run(args: argparse.Namespace) -> int:
     background = torch.tensor(args.background, dtype=torch.float32)
     sweep = list(np.linspace(0.0, 1.0, max(args.frames, 2)))
     center, radius = twin.bounds(sorted(set(args.t) | set(sweep)))
+    colors = None
+    if args.color == "parts":
+        parts = twin.parts.numpy()
+        hues = len(PART_PALETTE) - 1
+        colors = torch.as_tensor(PART_PALETTE[np.where(parts == 0, 0, 1 + (parts - 1) % hues)])
+
+    def shot(s: float, cam: Camera) -> Image.Image:
+        return _image(twin.render(s, cam, background, colors=colors).features)
 
     cams = orbit_cameras(center, radius, np.arange(args.views) * 360.0 / args.views,
                          args.elevation, up, args.res)
@@ -93,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         folder = out_dir / f"s{s:.3f}"
         folder.mkdir(parents=True, exist_ok=True)
         for v, cam in enumerate(cams):
-            _image(twin.render(s, cam, background).features).save(folder / f"{v:03d}.png")
+            shot(s, cam).save(folder / f"{v:03d}.png")
     print(f"rendered {len(args.t)} state(s) x {args.views} view(s) at {args.res}x{args.res} "
           f"into {out_dir}")
 
@@ -103,8 +120,7 @@ def run(args: argparse.Namespace) -> int:
                              args.elevation, up, args.res)
         folder = out_dir / "animation"
         folder.mkdir(parents=True, exist_ok=True)
-        frames = [_image(twin.render(s, cam, background).features)
-                  for s, cam in zip(states, cams, strict=True)]
+        frames = [shot(s, cam) for s, cam in zip(states, cams, strict=True)]
         for k, frame in enumerate(frames):
             frame.save(folder / f"{k:04d}.png")
         strip = Image.new("RGB", (args.res * len(frames), args.res))
