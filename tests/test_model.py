@@ -91,11 +91,13 @@ def test_densify_clones_small_splits_large_and_prunes_transparent():
 def test_densify_respects_the_gaussian_budget():
     gs = make_gaussians(4)
     gs.setup_optimizer(LRS)
-    gs.grad_accum = torch.ones(4)
+    gs.grad_accum = torch.tensor([1e-3, 3e-3, 2e-3, 1e-3])
     gs.grad_count = torch.ones(4)
-    gs.densify_and_prune(2e-4, 1.0, 0.01, 0.005, None, max_gaussians=5,
-                         generator=torch.Generator().manual_seed(0))
-    assert len(gs) == 4
+    info = gs.densify_and_prune(2e-4, 1.0, 0.01, 0.005, None, max_gaussians=6,
+                                generator=torch.Generator().manual_seed(0))
+    # all four want to split (2 new each); the budget of 2 takes the strongest one only
+    assert (info["split"], info["cloned"]) == (1, 0)
+    assert len(gs) == 5
 
 
 def test_opacity_reset_protects_small_movable_parts():

@@ -124,11 +124,11 @@ def _profile_changes(profile: str) -> dict[str, Any]:
         )
     if profile == "quick":  # demo / CI: a few hundred iterations, few Gaussians, 64-128 px
         return dict(
-            stage1_iterations=300, stage3_iterations=400, em_interval=50,
+            stage1_iterations=300, stage3_iterations=300, em_interval=50,
             densify_from=100, densify_until=250, densify_interval=50,
-            stage3_densify_until=200, opacity_reset_interval=100_000,
-            joint_classify_iteration=200, em_refine_joint_iterations=100,
-            init_max_points=4000, random_init_points=30_000, max_gaussians=15_000,
+            stage3_densify_until=150, opacity_reset_interval=100_000,
+            joint_classify_iteration=150, em_refine_joint_iterations=100,
+            init_max_points=2500, random_init_points=30_000, max_gaussians=4000,
             checkpoint_every=200, mesh_voxel=0.01, mesh_trunc=0.04,
             lr_means=1.6e-3, lr_means_final=1.6e-5, lr_colors=1e-2, lr_motion_rot=3e-3,
             lr_motion_trans=3e-3,

@@ -236,11 +236,15 @@ class Gaussians:
         scale = torch.exp(self.params["log_scales"].detach()).max(dim=1).values
         clone = hot & (scale <= percent_dense * extent)
         split = hot & ~clone
+        cost = clone.long() + _SPLIT_COPIES * split.long()  # Gaussians each candidate adds
+        budget = max(max_gaussians - len(self), 0)
+        if int(cost.sum()) > budget:  # over budget: the strongest gradients first
+            order = torch.argsort(avg, descending=True)
+            chosen = torch.zeros_like(hot)
+            chosen[order[torch.cumsum(cost[order], 0) <= budget]] = True
+            clone &= chosen
+            split &= chosen
         n_new = int(clone.sum()) + _SPLIT_COPIES * int(split.sum())
-        if len(self) + n_new > max_gaussians:
-            clone[:] = False
-            split[:] = False
-            n_new = 0
         n_before = len(self)
         extra = {name: t.detach()[clone] for name, t in self.params.items()}
         if bool(split.any()):
