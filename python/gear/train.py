@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import signal
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -155,8 +156,14 @@ class Trainer:
                 bar.update(1)
                 done = it + 1
                 if interrupt.requested:
+                    self.timings[stage.name] = (self.timings.get(stage.name, 0.0)
+                                                + time.perf_counter() - t0)
                     self._save(stage.name, done, stage)
                     bar.close()
+                    message = (f"interrupted: checkpoint saved at {stage.name} iteration {done}; "
+                               "continue with --resume")
+                    self.log.write({"message": message})
+                    print(message, file=sys.stderr)
                     raise KeyboardInterrupt
                 if done % c.checkpoint_every == 0 and done < total:
                     self._save(stage.name, done, stage)
