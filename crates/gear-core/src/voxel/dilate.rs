@@ -7,8 +7,8 @@ use rayon::prelude::*;
 
 use crate::error::{GearError, Result};
 
-/// Most keys a sparse dilation may produce in one axis pass before it is refused.
-const MAX_SPARSE_KEYS: usize = 1 << 31;
+/// Most keys (8 bytes each) a sparse dilation may produce in one axis pass: 1 GiB.
+const MAX_SPARSE_KEYS: usize = 1 << 27;
 
 /// Dense dilation of `occ` (C order, `shape`) by `radius` voxels.
 pub fn dilate_dense(occ: &[bool], shape: [usize; 3], radius: usize) -> Vec<bool> {
@@ -62,7 +62,7 @@ fn dilate_rows(input: &[bool], out: &mut [bool], len: usize, row: usize, r: usiz
 
 /// Sparse dilation of sorted keys in a grid of `shape` by `radius` voxels; sorted output.
 ///
-/// Fails (naming `radius`) if an axis pass would emit more than 2^31 keys.
+/// Fails (naming `radius`) if an axis pass could emit more than 2^27 keys.
 pub fn dilate_keys(keys: &[i64], shape: [usize; 3], radius: usize) -> Result<Vec<i64>> {
     let [_, y, z] = shape;
     let mut current = keys.to_vec();
