@@ -58,7 +58,7 @@ def test_knn_k_equals_n_minus_one():
 
 def test_knn_identical_points():
     points = np.full((100, 3), 0.5, dtype=np.float32)
-    idx, dist = check_knn(points, 8)
+    _, dist = check_knn(points, 8)
     assert np.all(dist == 0)
 
 
@@ -175,7 +175,7 @@ def test_components_bad_connectivity_and_shape():
 def two_sets(seed=0):
     rng = np.random.default_rng(seed)
     a = rng.normal(0, 0.3, (1500, 3)).astype(np.float32)
-    b = (rng.normal(0, 0.3, (1500, 3)) + [0.4, 0.0, -0.2]).astype(np.float32)
+    b = (rng.normal(0, 0.3, (1500, 3)) + np.array([0.4, 0.0, -0.2])).astype(np.float32)
     return a, b
 
 
