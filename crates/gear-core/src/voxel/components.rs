@@ -115,7 +115,9 @@ fn label_runs(runs: &Runs, shape: [usize; 3], conn: Connectivity) -> (Vec<i32>, 
 fn join_runs(runs: &Runs, [x, y, _]: [usize; 3], conn: Connectivity) -> Vec<u32> {
     let mut parent = vec![0u32; runs.len()];
     // Slabs of whole x planes, as `lines` index ranges; each starts at plane `first_plane`.
-    let slab_count = rayon::current_num_threads().clamp(1, x.max(1));
+    // A few slabs per thread, so a thread that gets descheduled on a busy machine can be
+    // covered by the others; each seam costs only one plane of extra work.
+    let slab_count = (4 * rayon::current_num_threads()).clamp(1, x.max(1));
     let slabs: Vec<(usize, std::ops::Range<usize>)> = (0..slab_count)
         .map(|s| {
             let (p0, p1) = (s * x / slab_count, (s + 1) * x / slab_count);
@@ -209,45 +211,39 @@ fn join_touching(
     parent: &mut [u32],
 ) {
     let (mut i, mut j) = (mine.start, theirs.start);
-    // The root of run i, kept across its touches (only this sweep links trees meanwhile).
-    let mut root_i = u32::MAX;
     while i < mine.end && j < theirs.end {
         let (a0, a1) = runs.spans[i];
         let (b0, b1) = runs.spans[j];
         if b0 < a1 + reach && a0 < b1 + reach {
-            if root_i == u32::MAX {
-                root_i = find(parent, (i - base) as u32);
-            }
-            let root_j = find(parent, (j - base) as u32);
-            root_i = link(parent, root_i, root_j);
+            union(parent, (i - base) as u32, (j - base) as u32);
         }
         let mine_ends_first = a1 < b1;
         i += mine_ends_first as usize;
         j += !mine_ends_first as usize;
-        if mine_ends_first {
-            root_i = u32::MAX;
+    }
+}
+
+/// Joins the trees of `x` and `y` under the smaller root (Rem's algorithm with splicing):
+/// both paths are climbed together, each step re-pointing the node with the larger parent to
+/// the smaller parent, until they meet or one reaches its root. Keeps `parent[i] <= i`.
+fn union(parent: &mut [u32], mut x: u32, mut y: u32) {
+    loop {
+        let (px, py) = (parent[x as usize], parent[y as usize]);
+        if px == py {
+            return;
         }
-    }
-}
-
-fn find(parent: &mut [u32], mut i: u32) -> u32 {
-    while parent[i as usize] != i {
-        let grand = parent[parent[i as usize] as usize];
-        parent[i as usize] = grand;
-        i = grand;
-    }
-    i
-}
-
-/// Joins two trees by their roots under the smaller one, keeping `parent[i] <= i`
-/// everywhere; returns the new root.
-#[inline]
-fn link(parent: &mut [u32], ra: u32, rb: u32) -> u32 {
-    if ra < rb {
-        parent[rb as usize] = ra;
-        ra
-    } else {
-        parent[ra as usize] = rb;
-        rb
+        if px > py {
+            parent[x as usize] = py;
+            if x == px {
+                return;
+            }
+            x = px;
+        } else {
+            parent[y as usize] = px;
+            if y == py {
+                return;
+            }
+            y = py;
+        }
     }
 }
