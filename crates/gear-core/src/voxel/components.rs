@@ -93,25 +93,37 @@ pub fn components_keys(keys: &[i64], shape: [usize; 3], conn: Connectivity) -> C
 
 /// The label of every run and the component sizes, largest first.
 fn label_runs(runs: &Runs, shape: [usize; 3], conn: Connectivity) -> (Vec<i32>, Vec<i64>) {
-    let parent = join_runs(runs, shape, conn);
-    let mut size = vec![0i64; parent.len()];
-    for (&(z0, z1), &root) in runs.spans.iter().zip(&parent) {
-        size[root as usize] += i64::from(z1 - z0);
+    let mut ids = join_runs(runs, shape, conn);
+    // Component ids in root order, in place: a root (parent[i] == i) opens the next id, any
+    // other run takes its root's id, already rewritten since roots come first (parent <= i).
+    let mut count = 0u32;
+    for i in 0..ids.len() {
+        let p = ids[i] as usize;
+        ids[i] = if p == i {
+            count += 1;
+            count - 1
+        } else {
+            ids[p]
+        };
     }
-    let mut roots: Vec<u32> = (0..parent.len() as u32)
-        .filter(|&i| parent[i as usize] == i)
-        .collect();
-    roots.sort_unstable_by_key(|&r| (std::cmp::Reverse(size[r as usize]), r));
-    let mut root_label = vec![0i32; parent.len()];
-    for (rank, &r) in roots.iter().enumerate() {
-        root_label[r as usize] = rank as i32 + 1;
+    let mut size = vec![0i64; count as usize];
+    for (&(z0, z1), &c) in runs.spans.iter().zip(&ids) {
+        size[c as usize] += i64::from(z1 - z0);
     }
-    let labels = parent.par_iter().map(|&p| root_label[p as usize]).collect();
-    let sizes = roots.iter().map(|&r| size[r as usize]).collect();
+    // Ids are in first-voxel order, so a stable sort by size gives the documented order.
+    let mut order: Vec<u32> = (0..count).collect();
+    order.sort_by_key(|&c| std::cmp::Reverse(size[c as usize]));
+    let mut label_of = vec![0i32; count as usize];
+    for (rank, &c) in order.iter().enumerate() {
+        label_of[c as usize] = rank as i32 + 1;
+    }
+    let labels = ids.par_iter().map(|&c| label_of[c as usize]).collect();
+    let sizes = order.iter().map(|&c| size[c as usize]).collect();
     (labels, sizes)
 }
 
-/// The root (smallest run index) of every run's component.
+/// The union-find forest over runs: following `parent` from any run reaches its component's
+/// root, the component's smallest run index (`parent[i] <= i`).
 fn join_runs(runs: &Runs, [x, y, _]: [usize; 3], conn: Connectivity) -> Vec<u32> {
     let mut parent = vec![0u32; runs.len()];
     // Slabs of whole x planes, as `lines` index ranges; each starts at plane `first_plane`.
@@ -161,10 +173,6 @@ fn join_runs(runs: &Runs, [x, y, _]: [usize; 3], conn: Connectivity) -> Vec<u32>
                 &mut parent,
             );
         }
-    }
-    // Roots are the smallest index of their tree, so one forward pass flattens every tree.
-    for i in 0..parent.len() {
-        parent[i] = parent[parent[i] as usize];
     }
     parent
 }
