@@ -12,7 +12,7 @@ mod tree;
 
 use crate::error::{GearError, Result};
 pub use search::Neighbours;
-pub use tree::KdTree;
+use tree::KdTree;
 
 /// Which queries to answer.
 #[derive(Clone, Copy)]
@@ -26,8 +26,10 @@ pub enum Queries<'a> {
 /// The `k` nearest reference `points` of each query, sorted nearest first.
 ///
 /// Errors (as [`GearError::InvalidInput`], naming the argument): `k = 0`, a non-finite
-/// coordinate, 2^32 - 1 points or more, or fewer candidates than `k` while there is at least one query. No query (an
-/// empty `points` with [`Queries::SelfExcluded`], or an empty query set) yields empty results.
+/// coordinate, 2^32 - 1 points or more, or fewer candidates than `k` while there is at least
+/// one query. No query (an empty `points` with [`Queries::SelfExcluded`], or an empty query
+/// set) yields empty results. Meant for small `k` (tens): candidates are kept by insertion,
+/// so the cost per query grows like `k^2`.
 /// Equal distances are ordered arbitrarily but deterministically.
 pub fn knn(points: &[[f32; 3]], queries: Queries<'_>, k: usize) -> Result<Neighbours> {
     if k == 0 {
