@@ -111,6 +111,18 @@ fn grid_large_enough_for_parallel_slabs_matches_flood_fill() {
 }
 
 #[test]
+fn long_lines_joined_by_sweeping_match_flood_fill() {
+    // Lines longer than 4096 cells are not indexed cell by cell; the sweep joins them.
+    let mut rng = fastrand::Rng::with_seed(10);
+    let shape = [4, 3, 5000];
+    for fill in [0.05, 0.4] {
+        let occ = random_grid(&mut rng, shape, fill);
+        check(&occ, shape, Connectivity::TwentySix);
+        check(&occ, shape, Connectivity::Six);
+    }
+}
+
+#[test]
 fn diagonal_contacts_join_only_with_26_connectivity() {
     let shape = [3, 3, 3];
     let idx = |x: usize, y: usize, z: usize| (x * 3 + y) * 3 + z;

@@ -124,7 +124,7 @@ fn label_runs(runs: &Runs, shape: [usize; 3], conn: Connectivity) -> (Vec<i32>, 
 
 /// The union-find forest over runs: following `parent` from any run reaches its component's
 /// root, the component's smallest run index (`parent[i] <= i`).
-fn join_runs(runs: &Runs, [x, y, _]: [usize; 3], conn: Connectivity) -> Vec<u32> {
+fn join_runs(runs: &Runs, [x, y, z]: [usize; 3], conn: Connectivity) -> Vec<u32> {
     let mut parent = vec![0u32; runs.len()];
     // Slabs of whole x planes, as `lines` index ranges; each starts at plane `first_plane`.
     // A few slabs per thread, so a thread that gets descheduled on a busy machine can be
@@ -152,8 +152,13 @@ fn join_runs(runs: &Runs, [x, y, _]: [usize; 3], conn: Connectivity) -> Vec<u32>
             for (i, p) in parent.iter_mut().enumerate() {
                 *p = i as u32;
             }
+            let mut index = LineIndex::fits(y, z).then(|| LineIndex::new(y, z));
             for li in lines {
-                join_line(runs, li, y, conn, |plane| plane > first_plane, base, parent);
+                let first = |plane| plane > first_plane;
+                join_line((runs, y, conn), li, first, index.as_ref(), base, parent);
+                if let Some(index) = index.as_mut() {
+                    index.record(runs, li);
+                }
             }
             for p in parent.iter_mut() {
                 *p += base as u32;
@@ -163,28 +168,22 @@ fn join_runs(runs: &Runs, [x, y, _]: [usize; 3], conn: Connectivity) -> Vec<u32>
     for (first_plane, lines) in slabs.iter().skip(1) {
         let seam = runs.lines_between((first_plane * y) as u64, ((first_plane + 1) * y) as u64);
         for li in seam.start.max(lines.start)..seam.end.min(lines.end) {
-            join_line(
-                runs,
-                li,
-                y,
-                conn,
-                |plane| plane == *first_plane,
-                0,
-                &mut parent,
-            );
+            let seam = |plane| plane == *first_plane;
+            join_line((runs, y, conn), li, seam, None, 0, &mut parent);
         }
     }
     parent
 }
 
 /// Joins the runs of `lines[li]` with those of its earlier neighbour lines; neighbours in the
-/// previous plane only if `previous_plane_ok(this plane)`. `parent` holds runs from `base` on.
+/// previous plane only if `previous_plane_ok(this plane)`. With an `index` holding every
+/// earlier line of this plane and the previous one, touching runs are looked up; otherwise
+/// found by a sweep. `parent` holds runs from `base` on.
 fn join_line(
-    runs: &Runs,
+    (runs, y, conn): (&Runs, usize, Connectivity),
     li: usize,
-    y: usize,
-    conn: Connectivity,
     previous_plane_ok: impl Fn(usize) -> bool,
+    index: Option<&LineIndex>,
     base: usize,
     parent: &mut [u32],
 ) {
@@ -202,8 +201,91 @@ fn join_line(
         if !wanted || ny < 0 || ny >= y as i64 {
             continue;
         }
-        let theirs = runs.of_line(((lx - dx as usize) * y) as u64 + ny as u64);
-        join_touching(runs, mine.clone(), theirs, reach, base, parent);
+        let other = ((lx - dx as usize) * y) as u64 + ny as u64;
+        let theirs = runs.of_line(other);
+        if theirs.is_empty() {
+            continue;
+        }
+        match index {
+            Some(index) => {
+                let first_after = index.line(other);
+                join_indexed(runs, mine.clone(), theirs, first_after, reach, base, parent);
+            }
+            None => join_touching(runs, mine.clone(), theirs, reach, base, parent),
+        }
+    }
+}
+
+/// Like [`join_touching`], but finds the first run of `theirs` that can touch each run of
+/// `mine` directly: `first_after[z]` is the first run of that line ending after cell `z`.
+/// One data-dependent branch per run instead of one per sweep step.
+fn join_indexed(
+    runs: &Runs,
+    mine: std::ops::Range<usize>,
+    theirs: std::ops::Range<usize>,
+    first_after: &[u32],
+    reach: u32,
+    base: usize,
+    parent: &mut [u32],
+) {
+    for i in mine {
+        let (a0, a1) = runs.spans[i];
+        // Touching: b1 > a0 - reach (the lookup) and b0 < a1 + reach (the loop test).
+        let mut t = first_after[a0.saturating_sub(reach) as usize] as usize;
+        while t < theirs.end && runs.spans[t].0 < a1 + reach {
+            union(parent, (i - base) as u32, (t - base) as u32);
+            t += 1;
+        }
+    }
+}
+
+/// For the lines of two consecutive x planes, the first run ending after each cell; a
+/// line's entry is written once its own runs have been joined and read by later lines.
+struct LineIndex {
+    first_after: Vec<u32>,
+    y: usize,
+    z: usize,
+}
+
+impl LineIndex {
+    /// Whether two planes of `u32` per cell stay small (8 MiB) and lines short enough to
+    /// index cell by cell.
+    fn fits(y: usize, z: usize) -> bool {
+        z <= 4096 && y.saturating_mul(z) <= 1 << 20
+    }
+
+    fn new(y: usize, z: usize) -> LineIndex {
+        LineIndex {
+            first_after: vec![0; 2 * y * z],
+            y,
+            z,
+        }
+    }
+
+    fn slot(&self, line: u64) -> usize {
+        let (x, y) = (
+            (line / self.y as u64) as usize,
+            (line % self.y as u64) as usize,
+        );
+        ((x % 2) * self.y + y) * self.z
+    }
+
+    fn line(&self, line: u64) -> &[u32] {
+        let at = self.slot(line);
+        &self.first_after[at..at + self.z]
+    }
+
+    /// Writes the entry of `lines[li]`, replacing that of the line two planes back.
+    fn record(&mut self, runs: &Runs, li: usize) {
+        let at = self.slot(runs.lines[li]);
+        let cells = &mut self.first_after[at..at + self.z];
+        let mut z = 0;
+        for t in runs.offsets[li]..runs.offsets[li + 1] {
+            let end = runs.spans[t].1 as usize;
+            cells[z..end].fill(t as u32);
+            z = end;
+        }
+        cells[z..].fill(runs.offsets[li + 1] as u32);
     }
 }
 
