@@ -1,7 +1,8 @@
 //! Connected components of occupied voxels (6- or 26-connectivity), labelled by size.
 //!
 //! Runs (see [`super::runs`]) of a line can only touch runs of the four earlier neighbouring
-//! lines (two for 6-connectivity); one merge-like sweep per line pair finds them, and they are
+//! lines (two for 6-connectivity). They are found through a per-cell index of those lines
+//! (or, where lines are too long to index and at slab seams, by a merge-like sweep) and
 //! joined in a union-find whose root is always the smallest run index. Runs are in key order,
 //! so each component's root is its first voxel in C order, which breaks ties between equal
 //! sizes. The grid is cut into x slabs labelled in parallel, each in its own slice of the
