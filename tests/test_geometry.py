@@ -268,6 +268,12 @@ def test_bad_grid_input_names_the_argument(sets, size, match):
         voxel_grid(sets, size)
 
 
+@pytest.mark.parametrize("keys", [[3, 1], [1, 1], [-1, 2], [5, 60]])
+def test_occupancy_rejects_invalid_keys(keys):
+    with pytest.raises(ValueError, match="keys: expected strictly increasing"):
+        Occupancy((3, 4, 5), keys=np.array(keys))
+
+
 def test_sparse_grid_beyond_the_dense_bound():
     # 0.001 voxels over a unit object: 10^9 cells, far past the dense bound -> sparse.
     pts = np.random.default_rng(4).random((5000, 3)).astype(np.float32)

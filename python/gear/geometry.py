@@ -64,6 +64,13 @@ class Occupancy:
         self._keys = None if keys is None else np.ascontiguousarray(keys, dtype=np.int64)
         if self._dense is not None and self._dense.shape != self.shape:
             raise ValueError(f"dense: shape {self._dense.shape} differs from {self.shape}")
+        if self._keys is not None:
+            k = self._keys
+            cells = int(np.prod(self.shape, dtype=np.float64))
+            if k.ndim != 1 or np.any(k[1:] <= k[:-1]) or (k.size and (k[0] < 0 or k[-1] >= cells)):
+                raise ValueError(
+                    f"keys: expected strictly increasing linear keys in [0, {cells}) (1-D)"
+                )
 
     @property
     def is_sparse(self) -> bool:
