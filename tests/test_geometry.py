@@ -209,13 +209,16 @@ def test_dense_and_sparse_grids_give_identical_results():
         static = dilate(occ_a & occ_b, 1)
         dynamic = occ_a - static
         labels, sizes = components(dynamic, 26)
+        probe = np.concatenate([occ_b.coords()[:50], [[-1, 0, 0], [0, 0, 10**6]]])
         results.append(dict(
-            a=occ_a.keys, union=(occ_a | occ_b).keys, static=static.keys, dynamic=dynamic.keys,
+            contains=occ_a.contains(probe), a=occ_a.keys, union=(occ_a | occ_b).keys,
+            static=static.keys, dynamic=dynamic.keys,
             sizes=sizes, point_labels=grid.point_labels(a, labels, dynamic),
         ))
     for key in results[0]:
         np.testing.assert_array_equal(results[0][key], results[1][key], err_msg=key)
     assert results[0]["sizes"].size > 0 and results[0]["point_labels"].any()
+    assert results[0]["contains"].any() and not results[0]["contains"][-2:].any()
 
 
 def test_point_labels_follow_the_voxel_labels():

@@ -60,6 +60,8 @@ class Occupancy:
         if (dense is None) == (keys is None):
             raise ValueError("Occupancy: give exactly one of dense= or keys=")
         self.shape = tuple(int(n) for n in shape)
+        if len(self.shape) != 3 or min(self.shape) < 0:
+            raise ValueError(f"shape: expected three sizes >= 0, got {shape}")
         self._dense = None if dense is None else np.ascontiguousarray(dense, dtype=bool)
         self._keys = None if keys is None else np.ascontiguousarray(keys, dtype=np.int64)
         if self._dense is not None and self._dense.shape != self.shape:
@@ -129,7 +131,7 @@ class Occupancy:
             raise ValueError(f"other: grid shape {other.shape} differs from {self.shape}")
         if self._dense is not None and other._dense is not None:
             a, b = self._dense, other._dense
-            cells = {"and": a & b, "or": a | b, "sub": a & ~b}[op]
+            cells = a & b if op == "and" else a | b if op == "or" else a & ~b
             return Occupancy(self.shape, dense=cells)
         return Occupancy(self.shape, keys=_core.keys_set_op(op, self.keys, other.keys, self.shape))
 
