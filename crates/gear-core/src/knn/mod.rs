@@ -28,8 +28,8 @@ pub enum Queries<'a> {
 /// Errors (as [`GearError::InvalidInput`], naming the argument): `k = 0`, a non-finite
 /// coordinate, 2^32 - 1 points or more, or fewer candidates than `k` while there is at least
 /// one query. No query (an empty `points` with [`Queries::SelfExcluded`], or an empty query
-/// set) yields empty results. Meant for small `k` (tens): candidates are kept by insertion,
-/// so the cost per query grows like `k^2`.
+/// set) yields empty results. Meant for small `k` (tens); larger `k` works, each accepted
+/// candidate costing a block move of up to `k` entries.
 /// Equal distances are ordered arbitrarily but deterministically.
 pub fn knn(points: &[[f32; 3]], queries: Queries<'_>, k: usize) -> Result<Neighbours> {
     if k == 0 {
