@@ -50,6 +50,16 @@ def test_knn_external_queries_float64_input():
     check_knn(points, 5, queries)
 
 
+def test_knn_accepts_torch_centres_with_grad():
+    torch = pytest.importorskip("torch")
+    centres = torch.randn(500, 3, requires_grad=True)
+    idx, dist = knn(centres, 3)
+    ref_idx, ref_dist = knn(centres.detach().numpy(), 3)
+    np.testing.assert_array_equal(idx, ref_idx)
+    np.testing.assert_array_equal(dist, ref_dist)
+    check_knn(centres.detach().numpy(), 3)
+
+
 def test_knn_k_equals_n_minus_one():
     points = np.random.default_rng(2).random((60, 3), dtype=np.float32)
     check_knn(points, 59)

@@ -2,9 +2,10 @@
 by several point sets, set operations, dilation and connected components.
 
 Points are float32 internally (the dtype of Gaussian centres); float64 or integer input is
-converted once. Voxel occupancy is dense (a bool array ``[X, Y, Z]``) when the grid has at
-most ``max_dense_cells`` cells, otherwise sparse (the sorted linear keys
-``(i * Y + j) * Z + k`` of the occupied voxels); both give the same results.
+converted once, and torch tensors are accepted (detached, moved to the CPU). Voxel occupancy
+is dense (a bool array ``[X, Y, Z]``) when the grid has at most ``max_dense_cells`` cells,
+otherwise sparse (the sorted linear keys ``(i * Y + j) * Z + k`` of the occupied voxels);
+both give the same results.
 """
 
 from __future__ import annotations
@@ -263,7 +264,10 @@ def components(
 
 
 def _points(points: np.ndarray, name: str) -> np.ndarray:
-    """``points`` as a C-contiguous float32 ``[N, 3]`` array (converted once if needed)."""
+    """``points`` as a C-contiguous float32 ``[N, 3]`` array (converted once if needed).
+    A torch tensor (Gaussian centres) is detached and brought to the CPU first."""
+    if hasattr(points, "detach"):
+        points = points.detach().cpu().numpy()
     arr = np.asarray(points)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name}: expected shape [N, 3], got {list(arr.shape)}")
