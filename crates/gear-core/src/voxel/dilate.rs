@@ -10,7 +10,9 @@ use crate::error::{GearError, Result};
 /// Most keys (8 bytes each) a sparse dilation may produce in one axis pass: 1 GiB.
 const MAX_SPARSE_KEYS: usize = 1 << 27;
 
-/// Dense dilation of `occ` (C order, `shape`) by `radius` voxels.
+/// Dense dilation of `occ` (C order, `shape`) by `radius` voxels. Along x and y each output
+/// row ORs up to `2 * radius + 1` input rows, so the cost grows with the radius (meant for
+/// the small radii of the coarse initialisation); along z it does not.
 pub fn dilate_dense(occ: &[bool], shape: [usize; 3], radius: usize) -> Vec<bool> {
     let [x, y, z] = shape;
     assert_eq!(occ.len(), x * y * z, "occupancy does not match its shape");

@@ -11,7 +11,8 @@ pub(super) struct Runs {
     pub offsets: Vec<usize>,
     /// `[z0, z1)` of each run, in key order.
     pub spans: Vec<(u32, u32)>,
-    /// For every line id `L` (empty or not), its runs start at `table[L]`; `len = lines + 1`.
+    /// Direct lookup, when cheap enough: the runs of line id `L` (empty or not) are
+    /// `spans[table[L]..table[L + 1]]`, one entry per line of the grid plus one.
     table: Option<Vec<u32>>,
 }
 
