@@ -150,7 +150,7 @@ class Occupancy:
         return f"Occupancy({kind}, shape={self.shape}, count={self.count})"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class VoxelGrid:
     """A grid shared by several point sets; voxel ``(i, j, k)`` covers
     ``origin + voxel_size * ([i, i+1) x [j, j+1) x [k, k+1))``."""
