@@ -111,9 +111,9 @@ fn label_runs(runs: &Runs, shape: [usize; 3], conn: Connectivity) -> (Vec<i32>, 
     for (&(z0, z1), &c) in runs.spans.iter().zip(&ids) {
         size[c as usize] += i64::from(z1 - z0);
     }
-    // Ids are in first-voxel order, so a stable sort by size gives the documented order.
+    // Ids are in first-voxel order, so (size descending, id) is the documented order.
     let mut order: Vec<u32> = (0..count).collect();
-    order.sort_by_key(|&c| std::cmp::Reverse(size[c as usize]));
+    order.par_sort_unstable_by_key(|&c| (std::cmp::Reverse(size[c as usize]), c));
     let mut label_of = vec![0i32; count as usize];
     for (rank, &c) in order.iter().enumerate() {
         label_of[c as usize] = rank as i32 + 1;
