@@ -112,14 +112,18 @@ fn label_runs(runs: &Runs, shape: [usize; 3], conn: Connectivity) -> (Vec<i32>, 
         size[c as usize] += i64::from(z1 - z0);
     }
     // Ids are in first-voxel order, so (size descending, id) is the documented order.
-    let mut order: Vec<u32> = (0..count).collect();
-    order.par_sort_unstable_by_key(|&c| (std::cmp::Reverse(size[c as usize]), c));
+    let mut order: Vec<(std::cmp::Reverse<i64>, u32)> = size
+        .iter()
+        .enumerate()
+        .map(|(c, &n)| (std::cmp::Reverse(n), c as u32))
+        .collect();
+    order.par_sort_unstable();
     let mut label_of = vec![0i32; count as usize];
-    for (rank, &c) in order.iter().enumerate() {
+    for (rank, &(_, c)) in order.iter().enumerate() {
         label_of[c as usize] = rank as i32 + 1;
     }
     let labels = ids.par_iter().map(|&c| label_of[c as usize]).collect();
-    let sizes = order.iter().map(|&c| size[c as usize]).collect();
+    let sizes = order.iter().map(|&(n, _)| n.0).collect();
     (labels, sizes)
 }
 
