@@ -3,8 +3,10 @@
 KNN: each point's k nearest others among N points near a surface (as Gaussian centres are),
 against cKDTree build + query(k + 1, workers=-1), both including the tree build and using all
 cores. Components: 26-connected labelling of random grids against ndimage.label (which does
-not sort components by size, so the baseline does less work). Ratio = scipy time / gear time,
-so > 1 means gear is faster. Runs alternate gear and scipy and keep each one's best time.
+not sort components by size, so the baseline does less work). Ratio = scipy time / gear time
+(wall clock), so > 1 means gear is faster; "cpu ratio" compares CPU time summed over threads
+(the work done, less sensitive to a busy machine). Runs alternate gear and scipy and keep each
+one's best time.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import argparse
 import os
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -38,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     print(f"gear.geometry vs scipy on {os.cpu_count()} cores; ratio = scipy / gear (> 1: faster)")
-    print(f"{'case':<34} {'gear ms':>10} {'scipy ms':>10} {'ratio':>7}  check")
+    print(f"{'case':<34} {'gear ms':>10} {'scipy ms':>10} {'ratio':>7} {'cpu ratio':>9}  check")
     if args.only in (None, "knn"):
         for n in KNN_SIZES:
             if args.quick and n > 100_000:
@@ -71,9 +74,9 @@ def knn_row(points: np.ndarray, k: int, repeat: int) -> None:
     def scipy_knn() -> np.ndarray:
         return cKDTree(points).query(points, k + 1, workers=-1)[0][:, 1:]
 
-    (t_ours, d_ours), (t_ref, d_ref) = best_times(ours, scipy_knn, repeat)
-    err = float(np.abs(d_ours - d_ref).max())
-    report(f"knn N={len(points):>9,} k={k:<2}", t_ours, t_ref, f"max |dd| {err:.1e}")
+    mine, ref = best_times(ours, scipy_knn, repeat)
+    err = float(np.abs(mine.result - ref.result).max())
+    report(f"knn N={len(points):>9,} k={k:<2}", mine, ref, f"max |dd| {err:.1e}")
 
 
 def components_row(occ: np.ndarray, fill: float, repeat: int) -> None:
@@ -85,30 +88,38 @@ def components_row(occ: np.ndarray, fill: float, repeat: int) -> None:
     def scipy_label() -> int:
         return ndimage.label(occ, structure=structure)[1]
 
-    (t_ours, n_ours), (t_ref, n_ref) = best_times(ours, scipy_label, repeat)
+    mine, ref = best_times(ours, scipy_label, repeat)
+    n_ours, n_ref = mine.result, ref.result
     check = f"{n_ours} components" + ("" if n_ours == n_ref else f" != scipy {n_ref}")
-    report(f"components {occ.shape[0]}^3 fill {fill:.0%}", t_ours, t_ref, check)
+    report(f"components {occ.shape[0]}^3 fill {fill:.0%}", mine, ref, check)
 
 
-def best_times(
-    a: Callable[[], object], b: Callable[[], object], repeat: int
-) -> tuple[tuple[float, object], tuple[float, object]]:
-    """Best time and last result of each, alternating a and b so both see the same load."""
-    best = [float("inf"), float("inf")]
-    results: list[object] = [None, None]
+@dataclass
+class Timing:
+    """Best wall time, best CPU time (all threads) and the last result of one side."""
+
+    wall: float = float("inf")
+    cpu: float = float("inf")
+    result: object = None
+
+
+def best_times(a: Callable[[], object], b: Callable[[], object], repeat: int) -> list[Timing]:
+    """Timings of a and b, alternating them so both see the same machine load."""
+    timings = [Timing(), Timing()]
     spent = 0.0
     for i in range(max(1, repeat)):
         if i > 0 and spent > 5.0:  # big rows: one or two runs are enough
             break
-        for j, fn in enumerate((a, b)):
-            t0 = time.perf_counter()
-            results[j] = fn()
-            dt = time.perf_counter() - t0
-            best[j] = min(best[j], dt)
-            spent += dt
-    return (best[0], results[0]), (best[1], results[1])
+        for fn, t in zip((a, b), timings, strict=True):
+            wall0, cpu0 = time.perf_counter(), time.process_time()
+            t.result = fn()
+            wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+            t.wall, t.cpu = min(t.wall, wall), min(t.cpu, cpu)
+            spent += wall
+    return timings
 
 
-def report(case: str, ours: float, ref: float, check: str) -> None:
-    print(f"{case:<34} {ours * 1e3:>10.1f} {ref * 1e3:>10.1f} {ref / ours:>7.2f}  {check}",
+def report(case: str, mine: Timing, ref: Timing, check: str) -> None:
+    print(f"{case:<34} {mine.wall * 1e3:>10.1f} {ref.wall * 1e3:>10.1f} "
+          f"{ref.wall / mine.wall:>7.2f} {ref.cpu / max(mine.cpu, 1e-9):>9.2f}  {check}",
           flush=True)
