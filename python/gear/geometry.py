@@ -2,9 +2,10 @@
 by several point sets, set operations, dilation and connected components.
 
 Points are float32 internally (the dtype of Gaussian centres); float64 or integer input is
-converted once. Voxel occupancy is dense (a bool array ``[X, Y, Z]``) when the grid has at
-most ``max_dense_cells`` cells, otherwise sparse (the sorted linear keys
-``(i * Y + j) * Z + k`` of the occupied voxels); both give the same results.
+converted once, and torch tensors are accepted (detached, moved to the CPU). Voxel occupancy
+is dense (a bool array ``[X, Y, Z]``) when the grid has at most ``max_dense_cells`` cells,
+otherwise sparse (the sorted linear keys ``(i * Y + j) * Z + k`` of the occupied voxels);
+both give the same results.
 """
 
 from __future__ import annotations
@@ -60,10 +61,19 @@ class Occupancy:
         if (dense is None) == (keys is None):
             raise ValueError("Occupancy: give exactly one of dense= or keys=")
         self.shape = tuple(int(n) for n in shape)
+        if len(self.shape) != 3 or min(self.shape) < 0:
+            raise ValueError(f"shape: expected three sizes >= 0, got {shape}")
         self._dense = None if dense is None else np.ascontiguousarray(dense, dtype=bool)
         self._keys = None if keys is None else np.ascontiguousarray(keys, dtype=np.int64)
         if self._dense is not None and self._dense.shape != self.shape:
             raise ValueError(f"dense: shape {self._dense.shape} differs from {self.shape}")
+        if self._keys is not None:
+            k = self._keys
+            cells = int(np.prod(self.shape, dtype=np.float64))
+            if k.ndim != 1 or np.any(k[1:] <= k[:-1]) or (k.size and (k[0] < 0 or k[-1] >= cells)):
+                raise ValueError(
+                    f"keys: expected strictly increasing linear keys in [0, {cells}) (1-D)"
+                )
 
     @property
     def is_sparse(self) -> bool:
@@ -122,7 +132,7 @@ class Occupancy:
             raise ValueError(f"other: grid shape {other.shape} differs from {self.shape}")
         if self._dense is not None and other._dense is not None:
             a, b = self._dense, other._dense
-            cells = {"and": a & b, "or": a | b, "sub": a & ~b}[op]
+            cells = a & b if op == "and" else a | b if op == "or" else a & ~b
             return Occupancy(self.shape, dense=cells)
         return Occupancy(self.shape, keys=_core.keys_set_op(op, self.keys, other.keys, self.shape))
 
@@ -140,7 +150,7 @@ class Occupancy:
         return f"Occupancy({kind}, shape={self.shape}, count={self.count})"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class VoxelGrid:
     """A grid shared by several point sets; voxel ``(i, j, k)`` covers
     ``origin + voxel_size * ([i, i+1) x [j, j+1) x [k, k+1))``."""
@@ -254,7 +264,10 @@ def components(
 
 
 def _points(points: np.ndarray, name: str) -> np.ndarray:
-    """``points`` as a C-contiguous float32 ``[N, 3]`` array (converted once if needed)."""
+    """``points`` as a C-contiguous float32 ``[N, 3]`` array (converted once if needed).
+    A torch tensor (Gaussian centres) is detached and brought to the CPU first."""
+    if hasattr(points, "detach"):
+        points = points.detach().cpu().numpy()
     arr = np.asarray(points)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name}: expected shape [N, 3], got {list(arr.shape)}")

@@ -12,7 +12,7 @@ mod tree;
 
 use crate::error::{GearError, Result};
 pub use search::Neighbours;
-pub use tree::KdTree;
+use tree::KdTree;
 
 /// Which queries to answer.
 #[derive(Clone, Copy)]
@@ -26,8 +26,10 @@ pub enum Queries<'a> {
 /// The `k` nearest reference `points` of each query, sorted nearest first.
 ///
 /// Errors (as [`GearError::InvalidInput`], naming the argument): `k = 0`, a non-finite
-/// coordinate, or fewer candidates than `k` while there is at least one query. No query (an
-/// empty `points` with [`Queries::SelfExcluded`], or an empty query set) yields empty results.
+/// coordinate, 2^32 - 1 points or more, or fewer candidates than `k` while there is at least
+/// one query. No query (an empty `points` with [`Queries::SelfExcluded`], or an empty query
+/// set) yields empty results. Meant for small `k` (tens); larger `k` works, each accepted
+/// candidate costing a block move of up to `k` entries.
 /// Equal distances are ordered arbitrarily but deterministically.
 pub fn knn(points: &[[f32; 3]], queries: Queries<'_>, k: usize) -> Result<Neighbours> {
     if k == 0 {
@@ -36,6 +38,13 @@ pub fn knn(points: &[[f32; 3]], queries: Queries<'_>, k: usize) -> Result<Neighb
         ));
     }
     check_finite(points, "points")?;
+    if points.len() >= u32::MAX as usize {
+        return Err(GearError::InvalidInput(format!(
+            "points: {} points, more than the {} a tree indexes",
+            points.len(),
+            u32::MAX - 1
+        )));
+    }
     let (query_count, candidates, note) = match queries {
         Queries::SelfExcluded => (
             points.len(),

@@ -131,7 +131,8 @@ fn dist2(a: [f32; 3], b: [f32; 3]) -> f32 {
     dx * dx + dy * dy + dz * dz
 }
 
-/// The k best candidates so far, sorted by squared distance (insertion: k is small).
+/// The k best candidates so far, sorted by squared distance (binary search and a block move
+/// per insertion: cheap for the small k this serves, tolerable for large k).
 struct Best {
     d2: Vec<f32>,
     ids: Vec<u32>,
@@ -158,15 +159,13 @@ impl Best {
     /// Inserts a candidate known to beat `worst`, dropping the k-th if the list is full.
     fn push(&mut self, d2: f32, id: u32) {
         let k = self.d2.len();
-        let mut i = self.len.min(k - 1);
+        let at = self.d2[..self.len].partition_point(|&d| d <= d2);
+        let last = self.len.min(k - 1); // the slot the shifted tail ends in
+        self.d2.copy_within(at..last, at + 1);
+        self.ids.copy_within(at..last, at + 1);
+        self.d2[at] = d2;
+        self.ids[at] = id;
         self.len = (self.len + 1).min(k);
-        while i > 0 && self.d2[i - 1] > d2 {
-            self.d2[i] = self.d2[i - 1];
-            self.ids[i] = self.ids[i - 1];
-            i -= 1;
-        }
-        self.d2[i] = d2;
-        self.ids[i] = id;
         if self.len == k {
             self.worst = self.d2[k - 1];
         }

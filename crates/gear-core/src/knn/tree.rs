@@ -74,7 +74,7 @@ impl Bounds {
     }
 }
 
-pub struct KdTree {
+pub(super) struct KdTree {
     pub(super) entries: Vec<Entry>,
     pub(super) bounds: Vec<Bounds>,
     /// `[start, end)` of each node in `entries`.
@@ -133,10 +133,6 @@ impl KdTree {
 
     pub fn len(&self) -> usize {
         self.entries.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.entries.is_empty()
     }
 }
 

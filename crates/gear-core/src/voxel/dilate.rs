@@ -7,10 +7,12 @@ use rayon::prelude::*;
 
 use crate::error::{GearError, Result};
 
-/// Most keys a sparse dilation may produce in one axis pass before it is refused.
-const MAX_SPARSE_KEYS: usize = 1 << 31;
+/// Most keys (8 bytes each) a sparse dilation may produce in one axis pass: 1 GiB.
+const MAX_SPARSE_KEYS: usize = 1 << 27;
 
-/// Dense dilation of `occ` (C order, `shape`) by `radius` voxels.
+/// Dense dilation of `occ` (C order, `shape`) by `radius` voxels. Along x and y each output
+/// row ORs up to `2 * radius + 1` input rows, so the cost grows with the radius (meant for
+/// the small radii of the coarse initialisation); along z it does not.
 pub fn dilate_dense(occ: &[bool], shape: [usize; 3], radius: usize) -> Vec<bool> {
     let [x, y, z] = shape;
     assert_eq!(occ.len(), x * y * z, "occupancy does not match its shape");
@@ -62,7 +64,7 @@ fn dilate_rows(input: &[bool], out: &mut [bool], len: usize, row: usize, r: usiz
 
 /// Sparse dilation of sorted keys in a grid of `shape` by `radius` voxels; sorted output.
 ///
-/// Fails (naming `radius`) if an axis pass would emit more than 2^31 keys.
+/// Fails (naming `radius`) if an axis pass could emit more than 2^27 keys.
 pub fn dilate_keys(keys: &[i64], shape: [usize; 3], radius: usize) -> Result<Vec<i64>> {
     let [_, y, z] = shape;
     let mut current = keys.to_vec();

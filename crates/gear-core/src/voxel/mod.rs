@@ -9,6 +9,7 @@
 mod components;
 mod dilate;
 mod grid;
+mod runs;
 mod sets;
 
 pub use components::{components_dense, components_keys, Components, Connectivity};
