@@ -48,8 +48,10 @@ def render(scene: Scene, cam: splat.Camera) -> tuple[splat.RenderOutput, list[to
     bg = torch.tensor([0.25, 0.5, 0.75][: scene.features.shape[1]])
     out = splat.rasterize(*scene.arrays(), cam, background=bg, depth=True)
     g = torch.Generator().manual_seed(0)
-    loss = sum((img * torch.rand(img.shape, generator=g)).sum() for img in
-               (out.features, out.alpha, out.depth))
+    loss = sum(
+        (img * torch.rand(img.shape, generator=g)).sum()
+        for img in (out.features, out.alpha, out.depth)
+    )
     loss.backward()
     grads = [a.grad for a in scene.arrays()]
     for name, value in [("features", out.features), ("alpha", out.alpha), ("depth", out.depth)]:
@@ -65,21 +67,26 @@ def assert_culled(scene: Scene, culled: list[int], cam: splat.Camera) -> None:
     out, grads = render(scene, cam)
     kept = [i for i in range(scene.means.shape[0]) if i not in culled]
     alone, _ = render(Scene(*(a[kept] for a in scene.arrays())), cam)
-    for a, b in [(out.features, alone.features), (out.alpha, alone.alpha),
-                 (out.depth, alone.depth)]:
+    for a, b in [
+        (out.features, alone.features),
+        (out.alpha, alone.alpha),
+        (out.depth, alone.depth),
+    ]:
         torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
     for name, grad in zip(ARRAYS, grads, strict=True):
         assert (grad[culled] == 0).all(), f"d{name} of a culled Gaussian is not zero"
 
 
 def test_near_plane_and_behind_the_camera():
-    scene = gaussians([
-        ((0.0, 0.0, 2.0), IDENTITY, -2.0, 1.0),  # visible
-        ((0.0, 0.0, 0.005), IDENTITY, -2.0, 1.0),  # closer than the near plane
-        ((0.0, 0.0, -1.0), IDENTITY, -2.0, 1.0),  # behind
-        ((0.1, 0.0, 0.0), IDENTITY, -2.0, 1.0),  # in the camera plane
-        ((3.0, -2.0, 0.02), IDENTITY, -2.0, 1.0),  # just past the near plane, far off axis
-    ])
+    scene = gaussians(
+        [
+            ((0.0, 0.0, 2.0), IDENTITY, -2.0, 1.0),  # visible
+            ((0.0, 0.0, 0.005), IDENTITY, -2.0, 1.0),  # closer than the near plane
+            ((0.0, 0.0, -1.0), IDENTITY, -2.0, 1.0),  # behind
+            ((0.1, 0.0, 0.0), IDENTITY, -2.0, 1.0),  # in the camera plane
+            ((3.0, -2.0, 0.02), IDENTITY, -2.0, 1.0),  # just past the near plane, far off axis
+        ]
+    )
     assert_culled(scene, [1, 2, 3], axis_camera())
     # A Gaussian right at the near plane, on the axis, fills the whole view.
     out, _ = render(gaussians([((0.0, 0.0, 0.0101), IDENTITY, -2.0, 1.0)]), axis_camera())
@@ -127,10 +134,15 @@ def test_zero_quaternion_is_the_identity_with_zero_gradient():
 
 def test_saturated_opacity_logits():
     cam = axis_camera()
-    out, grads = render(gaussians([
-        ((0.0, 0.0, 2.0), IDENTITY, -2.0, 50.0),
-        ((0.1, 0.0, 1.5), IDENTITY, -2.0, -50.0),
-    ]), cam)
+    out, grads = render(
+        gaussians(
+            [
+                ((0.0, 0.0, 2.0), IDENTITY, -2.0, 50.0),
+                ((0.1, 0.0, 1.5), IDENTITY, -2.0, -50.0),
+            ]
+        ),
+        cam,
+    )
     assert out.alpha[6, 8].item() == pytest.approx(0.999, abs=1e-6)  # the 0.999 clamp
     assert (grads[3] == 0).all()  # sigmoid'(±50) underflows; -50 is culled outright
     assert all((g[1] == 0).all() for g in grads)
@@ -153,8 +165,12 @@ def test_ten_thousand_gaussians_on_one_pixel():
     )
     out, grads = render(scene, cam)
     assert out.alpha.max().item() <= 1 - 1e-4 + 1e-6
-    want = rasterize_dense(*scene.to(torch.float64).arrays(), cam,
-                           torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64), depth=True)
+    want = rasterize_dense(
+        *scene.to(torch.float64).arrays(),
+        cam,
+        torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64),
+        depth=True,
+    )
     for name in ("features", "alpha", "depth"):
         assert_images_close(getattr(out, name), getattr(want, name), name)
     contributing = (grads[4] != 0).any(1)
@@ -179,7 +195,11 @@ def test_extreme_image_sizes_match_the_reference(width, height, n):
     cam = camera(width, height)
     scene = random_scene(n, seed=7, log_scale=(-4.0, -2.5))
     out, _ = render(scene, cam)
-    want = rasterize_tiled(*scene.to(torch.float64).arrays(), cam,
-                           torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64), depth=True)
+    want = rasterize_tiled(
+        *scene.to(torch.float64).arrays(),
+        cam,
+        torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64),
+        depth=True,
+    )
     for name in ("features", "alpha", "depth"):
         assert_images_close(getattr(out, name), getattr(want, name), name)

@@ -42,8 +42,9 @@ def _check_tensor(value: Any, name: str, shape: tuple[int | str, ...]) -> Tensor
     """A float32 CPU tensor of `shape` (ints fixed, strings free) or a clear error."""
     spelled = "[" + ", ".join(str(d) for d in shape) + "]"
     if not isinstance(value, Tensor):
-        raise TypeError(f"'{name}' must be a torch.Tensor of shape {spelled}, "
-                        f"got {type(value).__name__}")
+        raise TypeError(
+            f"'{name}' must be a torch.Tensor of shape {spelled}, got {type(value).__name__}"
+        )
     if value.dtype != torch.float32:
         raise TypeError(f"'{name}' must be float32, got {value.dtype}")
     if value.device.type != "cpu":
