@@ -97,14 +97,23 @@ def test_tiled_reference_equals_dense():
 
 # --- the GPU binding against the references ------------------------------------------------
 
-# (n, channels, depth, width, height, seed): sizes 1, 16, 300 (dense tables stay small);
-# image sizes that are and are not multiples of the 16-pixel tile.
+# (n, channels, depth, width, height, seed, spread): sizes 1, 16, 300 (dense tables stay
+# small); image sizes that are and are not multiples of the 16-pixel tile. Spread 4 puts many
+# Gaussians past the 1.3x-frustum clamp of the Jacobian, a few behind the camera.
 SCENES = [
-    (1, 3, True, 16, 16, 10),
-    (16, 11, False, 33, 17, 11),
-    (300, 3, True, 64, 48, 12),
-    (300, 11, True, 40, 30, 13),
+    (1, 3, True, 16, 16, 10, 1.0),
+    (16, 11, False, 33, 17, 11, 1.0),
+    (300, 3, True, 64, 48, 12, 1.0),
+    (300, 11, True, 40, 30, 13, 1.0),
+    (60, 2, True, 24, 20, 14, 4.0),
 ]
+SCENE_ARGS = ("n", "channels", "depth", "width", "height", "seed", "spread")
+
+
+def scene_for(n: int, channels: int, seed: int, spread: float) -> Scene:
+    """Wider-spread scenes get larger Gaussians so the clamped ones still reach the image."""
+    log_scale = (-2.5, -1.2) if spread <= 1 else (-2.0, -0.5)
+    return random_scene(n, channels, seed, spread, log_scale)
 
 
 def loss_weights(out: splat.RenderOutput, seed: int) -> list[torch.Tensor]:
@@ -124,9 +133,9 @@ def gradients(scene: Scene, render, seed: int) -> tuple[splat.RenderOutput, list
     return out, [a.grad for a in scene.arrays()]
 
 
-@pytest.mark.parametrize(("n", "channels", "depth", "width", "height", "seed"), SCENES)
-def test_gpu_matches_dense_reference(n, channels, depth, width, height, seed):
-    scene = random_scene(n, channels, seed)
+@pytest.mark.parametrize(SCENE_ARGS, SCENES)
+def test_gpu_matches_dense_reference(n, channels, depth, width, height, seed, spread):
+    scene = scene_for(n, channels, seed, spread)
     cam = as_float32(camera(width, height))
 
     def gpu(*arrays: torch.Tensor) -> splat.RenderOutput:
@@ -161,15 +170,10 @@ def core_args(scene: Scene, cam: splat.Camera, depth: bool) -> tuple:
     )
 
 
-@pytest.mark.parametrize(
-    ("n", "channels", "depth", "width", "height", "seed", "spread"),
-    [(*SCENES[1], 1.0), (*SCENES[2], 1.0), (60, 2, True, 24, 20, 14, 4.0)],
-)
+@pytest.mark.parametrize(SCENE_ARGS, SCENES[1:3] + SCENES[4:])
 def test_rust_reference_matches_torch_reference(n, channels, depth, width, height, seed, spread):
     # Two independent float64 implementations of the contract, on the same float32 inputs.
-    # spread 4 puts many Gaussians past the 1.3x-frustum clamp of the Jacobian, some behind
-    # the camera.
-    scene = random_scene(n, channels, seed, spread, log_scale=(-2.0, -0.5))
+    scene = scene_for(n, channels, seed, spread)
     cam = as_float32(camera(width, height))
     *outputs, state = _core.reference_forward(*core_args(scene, cam, depth))
     scene64 = scene.to(torch.float64, requires_grad=True)
