@@ -19,9 +19,11 @@ from splat_scenes import (
     camera,
     one_torch_thread,
     random_scene,
+    relative_l2,
 )
 
 IDENTITY = (1.0, 0.0, 0.0, 0.0)
+BACKGROUND = (0.25, 0.5, 0.75)
 _threads = pytest.fixture(autouse=True, scope="module")(one_torch_thread)
 
 
@@ -41,15 +43,19 @@ def gaussians(rows: list[tuple], channels: int = 3) -> Scene:
     )
 
 
-def render(scene: Scene, cam: splat.Camera) -> tuple[splat.RenderOutput, list[torch.Tensor]]:
-    """GPU render with depth, then the gradients of a fixed weighted sum of all three images;
-    asserts that everything is finite."""
-    scene = scene.to(torch.float32, requires_grad=True)
-    bg = torch.tensor([0.25, 0.5, 0.75][: scene.features.shape[1]])
-    out = splat.rasterize(*scene.arrays(), cam, background=bg, depth=True)
+def render(
+    scene: Scene, cam: splat.Camera, dense: bool = False
+) -> tuple[splat.RenderOutput, list[torch.Tensor]]:
+    """GPU render with depth (or, with `dense`, the float64 pure-torch reference), then the
+    gradients of a fixed weighted sum of the three images; asserts that all are finite."""
+    dtype = torch.float64 if dense else torch.float32
+    scene = scene.to(dtype, requires_grad=True)
+    bg = torch.tensor(BACKGROUND[: scene.features.shape[1]], dtype=dtype)
+    rasterizer = rasterize_dense if dense else splat.rasterize
+    out = rasterizer(*scene.arrays(), cam, bg, depth=True)
     g = torch.Generator().manual_seed(0)
     loss = sum(
-        (img * torch.rand(img.shape, generator=g)).sum()
+        (img * torch.rand(img.shape, generator=g, dtype=torch.float64).to(dtype)).sum()
         for img in (out.features, out.alpha, out.depth)
     )
     loss.backward()
@@ -159,20 +165,18 @@ def test_ten_thousand_gaussians_on_one_pixel():
     scene = Scene(
         means=torch.stack([torch.zeros(n), torch.zeros(n), z], 1),
         quats=torch.randn(n, 4, generator=g),
-        log_scales=torch.full((n, 3), -3.0),
+        log_scales=-3.3 + 0.6 * torch.rand(n, 3, generator=g),  # anisotropic: dquats != 0
         opacity_logits=torch.rand(n, generator=g) * 2,
         features=torch.rand(n, 3, generator=g),
     )
     out, grads = render(scene, cam)
     assert out.alpha.max().item() <= 1 - 1e-4 + 1e-6
-    want = rasterize_dense(
-        *scene.to(torch.float64).arrays(),
-        cam,
-        torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64),
-        depth=True,
-    )
+    want, want_grads = render(scene, cam, dense=True)
     for name in ("features", "alpha", "depth"):
-        assert_images_close(getattr(out, name), getattr(want, name), name)
+        assert_images_close(getattr(out, name), getattr(want, name).detach(), name)
+    for name, a, b in zip(ARRAYS, grads, want_grads, strict=True):
+        rel = relative_l2(a, b)
+        assert rel <= 1e-3, f"d{name}: relative L2 error {rel:.2e}"
     contributing = (grads[4] != 0).any(1)
     assert 0 < contributing.sum() < n // 5
 
@@ -184,7 +188,7 @@ def test_all_off_screen_and_empty_scenes_show_the_background():
     empty = random_scene(0)
     for scene in (off, empty):
         out, grads = render(scene, cam)
-        assert torch.equal(out.features, torch.tensor([0.25, 0.5, 0.75]).expand(20, 24, 3))
+        assert torch.equal(out.features, torch.tensor(BACKGROUND).expand(20, 24, 3))
         assert (out.alpha == 0).all() and (out.depth == 0).all()
         for grad, array in zip(grads, scene.arrays(), strict=True):
             assert grad.shape == array.shape and (grad == 0).all()
@@ -198,7 +202,7 @@ def test_extreme_image_sizes_match_the_reference(width, height, n):
     want = rasterize_tiled(
         *scene.to(torch.float64).arrays(),
         cam,
-        torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64),
+        torch.tensor(BACKGROUND, dtype=torch.float64),
         depth=True,
     )
     for name in ("features", "alpha", "depth"):
