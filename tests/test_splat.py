@@ -223,6 +223,23 @@ def test_cas_accumulation_matches_atomic_accumulation():
         assert rel <= 1e-5, f"d{name}: CAS vs atomic relative L2 {rel:.2e}"
 
 
+def test_any_memory_layout_is_accepted():
+    # Transposed views and a Fortran-order camera matrix render like contiguous inputs.
+    scene = random_scene(30, 4, seed=8)
+    cam = camera(20, 16)
+    fortran_cam = splat.Camera(
+        np.asfortranarray(cam.world_to_cam), cam.fx, cam.fy, cam.cx, cam.cy, 20, 16
+    )
+    arrays = list(scene.arrays())
+    arrays[0] = arrays[0].T.contiguous().T
+    arrays[4] = arrays[4].T.contiguous().T
+    assert not arrays[0].is_contiguous()
+    got = splat.rasterize(*arrays, fortran_cam, depth=True)
+    want = splat.rasterize(*scene.arrays(), cam, depth=True)
+    for a, b in zip(images(got), images(want), strict=True):
+        assert torch.equal(a, b)
+
+
 def test_gradients_only_for_inputs_that_require_them():
     scene = random_scene(20, 3, seed=5)
     scene.features.requires_grad_(True)

@@ -107,7 +107,7 @@ class _Rasterize(torch.autograd.Function):
     ) -> tuple[Tensor, ...]:
         image, alpha, depth_image, state = _core.rasterize_forward(
             *(_numpy(t) for t in (means, quats, log_scales, opacity_logits, features)),
-            camera.world_to_cam.astype(np.float32),
+            np.ascontiguousarray(camera.world_to_cam, dtype=np.float32),
             (camera.fx, camera.fy, camera.cx, camera.cy),
             camera.width,
             camera.height,
