@@ -20,6 +20,7 @@ from splat_scenes import (
     Scene,
     assert_images_close,
     camera,
+    core_args,
     one_torch_thread,
     random_scene,
     relative_l2,
@@ -155,27 +156,12 @@ def test_gpu_matches_dense_reference(n, channels, depth, width, height, seed, sp
         assert rel <= 1e-3, f"d{name}: relative L2 error {rel:.2e}"
 
 
-def core_args(scene: Scene, cam: splat.Camera, depth: bool) -> tuple:
-    """Positional arguments of _core.rasterize_forward / reference_forward."""
-    arrays = (a.detach().float().contiguous().numpy() for a in scene.arrays())
-    channels = scene.features.shape[1]
-    return (
-        *arrays,
-        cam.world_to_cam.astype(np.float32),
-        (cam.fx, cam.fy, cam.cx, cam.cy),
-        cam.width,
-        cam.height,
-        background(channels).numpy(),
-        depth,
-    )
-
-
 @pytest.mark.parametrize(SCENE_ARGS, SCENES[1:3] + SCENES[4:])
 def test_rust_reference_matches_torch_reference(n, channels, depth, width, height, seed, spread):
     # Two independent float64 implementations of the contract, on the same float32 inputs.
     scene = scene_for(n, channels, seed, spread)
     cam = as_float32(camera(width, height))
-    *outputs, state = _core.reference_forward(*core_args(scene, cam, depth))
+    *outputs, state = _core.reference_forward(*core_args(scene, cam, background(channels), depth))
     scene64 = scene.to(torch.float64, requires_grad=True)
     want = rasterize_dense(*scene64.arrays(), cam, background(channels).double(), depth)
     for got, expected in zip(outputs, images(want), strict=False):
@@ -195,7 +181,7 @@ def test_gpu_matches_rust_reference_on_a_larger_scene():
     # 3,000 Gaussians are too many for the dense torch table but cheap for the Rust reference.
     scene = random_scene(3000, 11, seed=17, spread=1.3, log_scale=(-4.0, -2.0))
     cam = camera(96, 80)
-    args = core_args(scene, cam, True)
+    args = core_args(scene, cam, background(11), True)
     *got, gpu_state = _core.rasterize_forward(*args)
     *want, ref_state = _core.reference_forward(*args)
     for name, a, b in zip(("features", "alpha", "depth"), got, want, strict=True):
@@ -211,10 +197,10 @@ def test_gpu_matches_rust_reference_on_a_larger_scene():
 
 def test_cas_accumulation_matches_atomic_accumulation():
     scene = random_scene(300, 4, seed=21)
-    cam = camera(40, 30)
+    args = core_args(scene, camera(40, 30), background(4), True)
     grads = []
     for force_cas in (False, True):
-        *outputs, state = _core.rasterize_forward(*core_args(scene, cam, True), force_cas)
+        *outputs, state = _core.rasterize_forward(*args, force_cas)
         weights = [np.ones_like(img) for img in outputs]
         grads.append(_core.rasterize_backward(state, *weights))
     for name, atomic, cas in zip(ARRAYS, *grads, strict=True):
