@@ -76,6 +76,20 @@ def relative_l2(got: Tensor, want: Tensor) -> float:
     return diff / norm if norm > 0 else diff
 
 
+def core_args(scene: Scene, cam: Camera, background: Tensor, depth: bool) -> tuple:
+    """Positional arguments of _core.rasterize_forward / _core.reference_forward."""
+    arrays = (a.detach().float().contiguous().numpy() for a in scene.arrays())
+    return (
+        *arrays,
+        np.ascontiguousarray(cam.world_to_cam, dtype=np.float32),
+        (cam.fx, cam.fy, cam.cx, cam.cy),
+        cam.width,
+        cam.height,
+        background.float().numpy(),
+        depth,
+    )
+
+
 def assert_images_close(got: Tensor, want: Tensor, name: str, atol: float = 1e-4) -> None:
     """A float32 image against a float64 reference of the same shape: every value within
     `atol`, except where the two precisions fall on either side of the 1/255 alpha skip. Such a

@@ -20,6 +20,7 @@ from splat_scenes import (
     Scene,
     assert_images_close,
     camera,
+    core_args,
     one_torch_thread,
     random_scene,
     relative_l2,
@@ -97,14 +98,23 @@ def test_tiled_reference_equals_dense():
 
 # --- the GPU binding against the references ------------------------------------------------
 
-# (n, channels, depth, width, height, seed): sizes 1, 16, 300 (dense tables stay small);
-# image sizes that are and are not multiples of the 16-pixel tile.
+# (n, channels, depth, width, height, seed, spread): sizes 1, 16, 300 (dense tables stay
+# small); image sizes that are and are not multiples of the 16-pixel tile. Spread 4 puts many
+# Gaussians past the 1.3x-frustum clamp of the Jacobian, a few behind the camera.
 SCENES = [
-    (1, 3, True, 16, 16, 10),
-    (16, 11, False, 33, 17, 11),
-    (300, 3, True, 64, 48, 12),
-    (300, 11, True, 40, 30, 13),
+    (1, 3, True, 16, 16, 10, 1.0),
+    (16, 11, False, 33, 17, 11, 1.0),
+    (300, 3, True, 64, 48, 12, 1.0),
+    (300, 11, True, 40, 30, 13, 1.0),
+    (60, 2, True, 24, 20, 14, 4.0),
 ]
+SCENE_ARGS = ("n", "channels", "depth", "width", "height", "seed", "spread")
+
+
+def scene_for(n: int, channels: int, seed: int, spread: float) -> Scene:
+    """Wider-spread scenes get larger Gaussians so the clamped ones still reach the image."""
+    log_scale = (-2.5, -1.2) if spread <= 1 else (-2.0, -0.5)
+    return random_scene(n, channels, seed, spread, log_scale)
 
 
 def loss_weights(out: splat.RenderOutput, seed: int) -> list[torch.Tensor]:
@@ -124,9 +134,9 @@ def gradients(scene: Scene, render, seed: int) -> tuple[splat.RenderOutput, list
     return out, [a.grad for a in scene.arrays()]
 
 
-@pytest.mark.parametrize(("n", "channels", "depth", "width", "height", "seed"), SCENES)
-def test_gpu_matches_dense_reference(n, channels, depth, width, height, seed):
-    scene = random_scene(n, channels, seed)
+@pytest.mark.parametrize(SCENE_ARGS, SCENES)
+def test_gpu_matches_dense_reference(n, channels, depth, width, height, seed, spread):
+    scene = scene_for(n, channels, seed, spread)
     cam = as_float32(camera(width, height))
 
     def gpu(*arrays: torch.Tensor) -> splat.RenderOutput:
@@ -146,32 +156,12 @@ def test_gpu_matches_dense_reference(n, channels, depth, width, height, seed):
         assert rel <= 1e-3, f"d{name}: relative L2 error {rel:.2e}"
 
 
-def core_args(scene: Scene, cam: splat.Camera, depth: bool) -> tuple:
-    """Positional arguments of _core.rasterize_forward / reference_forward."""
-    arrays = (a.detach().float().contiguous().numpy() for a in scene.arrays())
-    channels = scene.features.shape[1]
-    return (
-        *arrays,
-        cam.world_to_cam.astype(np.float32),
-        (cam.fx, cam.fy, cam.cx, cam.cy),
-        cam.width,
-        cam.height,
-        background(channels).numpy(),
-        depth,
-    )
-
-
-@pytest.mark.parametrize(
-    ("n", "channels", "depth", "width", "height", "seed", "spread"),
-    [(*SCENES[1], 1.0), (*SCENES[2], 1.0), (60, 2, True, 24, 20, 14, 4.0)],
-)
+@pytest.mark.parametrize(SCENE_ARGS, SCENES[1:3] + SCENES[4:])
 def test_rust_reference_matches_torch_reference(n, channels, depth, width, height, seed, spread):
     # Two independent float64 implementations of the contract, on the same float32 inputs.
-    # spread 4 puts many Gaussians past the 1.3x-frustum clamp of the Jacobian, some behind
-    # the camera.
-    scene = random_scene(n, channels, seed, spread, log_scale=(-2.0, -0.5))
+    scene = scene_for(n, channels, seed, spread)
     cam = as_float32(camera(width, height))
-    *outputs, state = _core.reference_forward(*core_args(scene, cam, depth))
+    *outputs, state = _core.reference_forward(*core_args(scene, cam, background(channels), depth))
     scene64 = scene.to(torch.float64, requires_grad=True)
     want = rasterize_dense(*scene64.arrays(), cam, background(channels).double(), depth)
     for got, expected in zip(outputs, images(want), strict=False):
@@ -187,18 +177,53 @@ def test_rust_reference_matches_torch_reference(n, channels, depth, width, heigh
         assert rel <= 1e-9, f"d{name}: relative L2 error {rel:.2e}"
 
 
+def test_gpu_matches_rust_reference_on_a_larger_scene():
+    # 3,000 Gaussians are too many for the dense torch table but cheap for the Rust reference.
+    scene = random_scene(3000, 11, seed=17, spread=1.3, log_scale=(-4.0, -2.0))
+    cam = camera(96, 80)
+    args = core_args(scene, cam, background(11), True)
+    *got, gpu_state = _core.rasterize_forward(*args)
+    *want, ref_state = _core.reference_forward(*args)
+    for name, a, b in zip(("features", "alpha", "depth"), got, want, strict=True):
+        assert_images_close(torch.from_numpy(a), torch.from_numpy(b), name)
+    g = torch.Generator().manual_seed(3)
+    weights = [torch.rand(img.shape, generator=g, dtype=torch.float64) * 2 - 1 for img in want]
+    got_grads = _core.rasterize_backward(gpu_state, *(w.float().numpy() for w in weights))
+    want_grads = _core.reference_backward(ref_state, *(w.numpy() for w in weights))
+    for name, a, b in zip(ARRAYS, got_grads, want_grads, strict=True):
+        rel = relative_l2(torch.from_numpy(a), torch.from_numpy(b))
+        assert rel <= 1e-3, f"d{name}: relative L2 error {rel:.2e}"
+
+
 def test_cas_accumulation_matches_atomic_accumulation():
     scene = random_scene(300, 4, seed=21)
-    cam = camera(40, 30)
+    args = core_args(scene, camera(40, 30), background(4), True)
     grads = []
     for force_cas in (False, True):
-        *outputs, state = _core.rasterize_forward(*core_args(scene, cam, True), force_cas)
+        *outputs, state = _core.rasterize_forward(*args, force_cas)
         weights = [np.ones_like(img) for img in outputs]
         grads.append(_core.rasterize_backward(state, *weights))
     for name, atomic, cas in zip(ARRAYS, *grads, strict=True):
         # Same terms, summed in another order: float32 rounding only.
         rel = relative_l2(torch.from_numpy(cas), torch.from_numpy(atomic))
         assert rel <= 1e-5, f"d{name}: CAS vs atomic relative L2 {rel:.2e}"
+
+
+def test_any_memory_layout_is_accepted():
+    # Transposed views and a Fortran-order camera matrix render like contiguous inputs.
+    scene = random_scene(30, 4, seed=8)
+    cam = camera(20, 16)
+    fortran_cam = splat.Camera(
+        np.asfortranarray(cam.world_to_cam), cam.fx, cam.fy, cam.cx, cam.cy, 20, 16
+    )
+    arrays = list(scene.arrays())
+    arrays[0] = arrays[0].T.contiguous().T
+    arrays[4] = arrays[4].T.contiguous().T
+    assert not arrays[0].is_contiguous()
+    got = splat.rasterize(*arrays, fortran_cam, depth=True)
+    want = splat.rasterize(*scene.arrays(), cam, depth=True)
+    for a, b in zip(images(got), images(want), strict=True):
+        assert torch.equal(a, b)
 
 
 def test_gradients_only_for_inputs_that_require_them():

@@ -10,18 +10,21 @@ import numpy as np
 import pytest
 import torch
 
-from gear import splat
+from gear import _core, splat
 from gear.splat_reference import rasterize_dense, rasterize_tiled
 from splat_scenes import (
     ARRAYS,
     Scene,
     assert_images_close,
     camera,
+    core_args,
     one_torch_thread,
     random_scene,
+    relative_l2,
 )
 
 IDENTITY = (1.0, 0.0, 0.0, 0.0)
+BACKGROUND = (0.25, 0.5, 0.75)
 _threads = pytest.fixture(autouse=True, scope="module")(one_torch_thread)
 
 
@@ -41,15 +44,21 @@ def gaussians(rows: list[tuple], channels: int = 3) -> Scene:
     )
 
 
-def render(scene: Scene, cam: splat.Camera) -> tuple[splat.RenderOutput, list[torch.Tensor]]:
-    """GPU render with depth, then the gradients of a fixed weighted sum of all three images;
-    asserts that everything is finite."""
-    scene = scene.to(torch.float32, requires_grad=True)
-    bg = torch.tensor([0.25, 0.5, 0.75][: scene.features.shape[1]])
-    out = splat.rasterize(*scene.arrays(), cam, background=bg, depth=True)
+def render(
+    scene: Scene, cam: splat.Camera, dense: bool = False
+) -> tuple[splat.RenderOutput, list[torch.Tensor]]:
+    """GPU render with depth (or, with `dense`, the float64 pure-torch reference), then the
+    gradients of a fixed weighted sum of the three images; asserts that all are finite."""
+    dtype = torch.float64 if dense else torch.float32
+    scene = scene.to(dtype, requires_grad=True)
+    bg = torch.tensor(BACKGROUND[: scene.features.shape[1]], dtype=dtype)
+    rasterizer = rasterize_dense if dense else splat.rasterize
+    out = rasterizer(*scene.arrays(), cam, bg, depth=True)
     g = torch.Generator().manual_seed(0)
-    loss = sum((img * torch.rand(img.shape, generator=g)).sum() for img in
-               (out.features, out.alpha, out.depth))
+    loss = sum(
+        (img * torch.rand(img.shape, generator=g, dtype=torch.float64).to(dtype)).sum()
+        for img in (out.features, out.alpha, out.depth)
+    )
     loss.backward()
     grads = [a.grad for a in scene.arrays()]
     for name, value in [("features", out.features), ("alpha", out.alpha), ("depth", out.depth)]:
@@ -65,21 +74,26 @@ def assert_culled(scene: Scene, culled: list[int], cam: splat.Camera) -> None:
     out, grads = render(scene, cam)
     kept = [i for i in range(scene.means.shape[0]) if i not in culled]
     alone, _ = render(Scene(*(a[kept] for a in scene.arrays())), cam)
-    for a, b in [(out.features, alone.features), (out.alpha, alone.alpha),
-                 (out.depth, alone.depth)]:
+    for a, b in [
+        (out.features, alone.features),
+        (out.alpha, alone.alpha),
+        (out.depth, alone.depth),
+    ]:
         torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
     for name, grad in zip(ARRAYS, grads, strict=True):
         assert (grad[culled] == 0).all(), f"d{name} of a culled Gaussian is not zero"
 
 
 def test_near_plane_and_behind_the_camera():
-    scene = gaussians([
-        ((0.0, 0.0, 2.0), IDENTITY, -2.0, 1.0),  # visible
-        ((0.0, 0.0, 0.005), IDENTITY, -2.0, 1.0),  # closer than the near plane
-        ((0.0, 0.0, -1.0), IDENTITY, -2.0, 1.0),  # behind
-        ((0.1, 0.0, 0.0), IDENTITY, -2.0, 1.0),  # in the camera plane
-        ((3.0, -2.0, 0.02), IDENTITY, -2.0, 1.0),  # just past the near plane, far off axis
-    ])
+    scene = gaussians(
+        [
+            ((0.0, 0.0, 2.0), IDENTITY, -2.0, 1.0),  # visible
+            ((0.0, 0.0, 0.005), IDENTITY, -2.0, 1.0),  # closer than the near plane
+            ((0.0, 0.0, -1.0), IDENTITY, -2.0, 1.0),  # behind
+            ((0.1, 0.0, 0.0), IDENTITY, -2.0, 1.0),  # in the camera plane
+            ((3.0, -2.0, 0.02), IDENTITY, -2.0, 1.0),  # just past the near plane, far off axis
+        ]
+    )
     assert_culled(scene, [1, 2, 3], axis_camera())
     # A Gaussian right at the near plane, on the axis, fills the whole view.
     out, _ = render(gaussians([((0.0, 0.0, 0.0101), IDENTITY, -2.0, 1.0)]), axis_camera())
@@ -127,10 +141,15 @@ def test_zero_quaternion_is_the_identity_with_zero_gradient():
 
 def test_saturated_opacity_logits():
     cam = axis_camera()
-    out, grads = render(gaussians([
-        ((0.0, 0.0, 2.0), IDENTITY, -2.0, 50.0),
-        ((0.1, 0.0, 1.5), IDENTITY, -2.0, -50.0),
-    ]), cam)
+    out, grads = render(
+        gaussians(
+            [
+                ((0.0, 0.0, 2.0), IDENTITY, -2.0, 50.0),
+                ((0.1, 0.0, 1.5), IDENTITY, -2.0, -50.0),
+            ]
+        ),
+        cam,
+    )
     assert out.alpha[6, 8].item() == pytest.approx(0.999, abs=1e-6)  # the 0.999 clamp
     assert (grads[3] == 0).all()  # sigmoid'(±50) underflows; -50 is culled outright
     assert all((g[1] == 0).all() for g in grads)
@@ -147,16 +166,18 @@ def test_ten_thousand_gaussians_on_one_pixel():
     scene = Scene(
         means=torch.stack([torch.zeros(n), torch.zeros(n), z], 1),
         quats=torch.randn(n, 4, generator=g),
-        log_scales=torch.full((n, 3), -3.0),
+        log_scales=-3.3 + 0.6 * torch.rand(n, 3, generator=g),  # anisotropic: dquats != 0
         opacity_logits=torch.rand(n, generator=g) * 2,
         features=torch.rand(n, 3, generator=g),
     )
     out, grads = render(scene, cam)
     assert out.alpha.max().item() <= 1 - 1e-4 + 1e-6
-    want = rasterize_dense(*scene.to(torch.float64).arrays(), cam,
-                           torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64), depth=True)
+    want, want_grads = render(scene, cam, dense=True)
     for name in ("features", "alpha", "depth"):
-        assert_images_close(getattr(out, name), getattr(want, name), name)
+        assert_images_close(getattr(out, name), getattr(want, name).detach(), name)
+    for name, a, b in zip(ARRAYS, grads, want_grads, strict=True):
+        rel = relative_l2(a, b)
+        assert rel <= 1e-3, f"d{name}: relative L2 error {rel:.2e}"
     contributing = (grads[4] != 0).any(1)
     assert 0 < contributing.sum() < n // 5
 
@@ -168,7 +189,7 @@ def test_all_off_screen_and_empty_scenes_show_the_background():
     empty = random_scene(0)
     for scene in (off, empty):
         out, grads = render(scene, cam)
-        assert torch.equal(out.features, torch.tensor([0.25, 0.5, 0.75]).expand(20, 24, 3))
+        assert torch.equal(out.features, torch.tensor(BACKGROUND).expand(20, 24, 3))
         assert (out.alpha == 0).all() and (out.depth == 0).all()
         for grad, array in zip(grads, scene.arrays(), strict=True):
             assert grad.shape == array.shape and (grad == 0).all()
@@ -179,7 +200,59 @@ def test_extreme_image_sizes_match_the_reference(width, height, n):
     cam = camera(width, height)
     scene = random_scene(n, seed=7, log_scale=(-4.0, -2.5))
     out, _ = render(scene, cam)
-    want = rasterize_tiled(*scene.to(torch.float64).arrays(), cam,
-                           torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64), depth=True)
+    want = rasterize_tiled(
+        *scene.to(torch.float64).arrays(),
+        cam,
+        torch.tensor(BACKGROUND, dtype=torch.float64),
+        depth=True,
+    )
     for name in ("features", "alpha", "depth"):
         assert_images_close(getattr(out, name), getattr(want, name), name)
+
+
+def adversarial_scene() -> Scene:
+    """40 ordinary Gaussians in front of `axis_camera`, plus one of each hard case."""
+    ordinary = random_scene(40, seed=9)
+    ordinary.means[:, 2] += 4.0
+    ordinary.features = torch.full((40, 3), 0.5) + 0.3 * ordinary.features
+    hard = gaussians(
+        [
+            ((0.0, 0.0, 0.0101), IDENTITY, -2.0, 1.0),  # at the near plane, fills the view
+            ((0.0, 0.0, 0.005), IDENTITY, -2.0, 1.0),  # closer than the near plane
+            ((0.0, 0.0, -1.0), IDENTITY, -2.0, 1.0),  # behind
+            ((0.3, 0.0, 2.0), (0.0, 0.0, 0.0, 0.0), -2.5, 0.5),  # zero quaternion
+            ((-0.2, 0.1, 3.0), IDENTITY, math.log(1e-7), 0.8),  # point-like
+            ((0.0, 0.0, 50.0), IDENTITY, math.log(1e3), -1.0),  # huge, behind everything
+            ((0.1, -0.1, 2.5), IDENTITY, -2.0, 50.0),  # opaque: the 0.999 clamp
+            ((0.1, 0.1, 2.5), IDENTITY, -2.0, -50.0),  # transparent: culled
+            ((float("nan"), 0.0, 2.0), IDENTITY, -2.0, 1.0),  # non-finite
+            ((5.0, 0.0, 0.5), IDENTITY, -0.5, 1.0),  # far off-axis: clamped Jacobian
+        ]
+    )
+    return ordinary.cat(hard)
+
+
+def test_adversarial_scene_matches_the_references():
+    # The GPU (float32) against the float64 torch reference, and the float64 Rust reference
+    # against it too (the camera and background are exact in float32, so the two references
+    # see identical inputs and agree to rounding).
+    cam = axis_camera()
+    scene = adversarial_scene()
+    out, grads = render(scene, cam)
+    want, want_grads = render(scene, cam, dense=True)
+    for name in ("features", "alpha", "depth"):
+        assert_images_close(getattr(out, name), getattr(want, name).detach(), name)
+    for name, a, b in zip(ARRAYS, grads, want_grads, strict=True):
+        rel = relative_l2(a, b)
+        assert rel <= 1e-3, f"GPU d{name}: relative L2 error {rel:.2e}"
+
+    args = core_args(scene, cam, torch.tensor(BACKGROUND), True)
+    *images, state = _core.reference_forward(*args)
+    for name, image in zip(("features", "alpha", "depth"), images, strict=True):
+        np.testing.assert_allclose(image, getattr(want, name).detach().numpy(), atol=1e-9)
+    g = torch.Generator().manual_seed(0)  # the weights `render` used
+    weights = [torch.rand(img.shape, generator=g, dtype=torch.float64).numpy() for img in images]
+    ref_grads = _core.reference_backward(state, *weights)
+    for name, a, b in zip(ARRAYS, ref_grads, want_grads, strict=True):
+        rel = relative_l2(torch.from_numpy(a), b)
+        assert rel <= 1e-9, f"reference d{name}: relative L2 error {rel:.2e}"

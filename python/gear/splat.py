@@ -42,8 +42,9 @@ def _check_tensor(value: Any, name: str, shape: tuple[int | str, ...]) -> Tensor
     """A float32 CPU tensor of `shape` (ints fixed, strings free) or a clear error."""
     spelled = "[" + ", ".join(str(d) for d in shape) + "]"
     if not isinstance(value, Tensor):
-        raise TypeError(f"'{name}' must be a torch.Tensor of shape {spelled}, "
-                        f"got {type(value).__name__}")
+        raise TypeError(
+            f"'{name}' must be a torch.Tensor of shape {spelled}, got {type(value).__name__}"
+        )
     if value.dtype != torch.float32:
         raise TypeError(f"'{name}' must be float32, got {value.dtype}")
     if value.device.type != "cpu":
@@ -106,7 +107,7 @@ class _Rasterize(torch.autograd.Function):
     ) -> tuple[Tensor, ...]:
         image, alpha, depth_image, state = _core.rasterize_forward(
             *(_numpy(t) for t in (means, quats, log_scales, opacity_logits, features)),
-            camera.world_to_cam.astype(np.float32),
+            np.ascontiguousarray(camera.world_to_cam, dtype=np.float32),
             (camera.fx, camera.fy, camera.cx, camera.cy),
             camera.width,
             camera.height,

@@ -3,7 +3,8 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::constants::{CLAMP_FACTOR, MAX_CHANNELS, TILE};
+use super::constants::{CLAMP_FACTOR, MAX_CHANNELS};
+use super::kernels::GPU_TILE;
 use super::types::Camera;
 
 #[repr(C)]
@@ -46,8 +47,8 @@ impl Frame {
             n: n as u32,
             width: camera.width,
             height: camera.height,
-            tiles_x: camera.width.div_ceil(TILE),
-            tiles_y: camera.height.div_ceil(TILE),
+            tiles_x: camera.width.div_ceil(GPU_TILE),
+            tiles_y: camera.height.div_ceil(GPU_TILE),
             pad: [0; 3],
             background: bg,
         }

@@ -51,10 +51,10 @@ pub fn backward(
     let scene = Scene::new(gaussians);
     let view = View::new(camera);
     let background = widen(&options.background);
-    let image_grads = ImageGrads {
-        features: grads.features,
-        alpha: grads.alpha,
+    // Without a depth image there is no depth gradient to apply.
+    let image_grads = OutputGradients {
         depth: grads.depth.filter(|_| options.depth),
+        ..*grads
     };
     Ok(gradients(
         &scene,
@@ -505,13 +505,6 @@ fn render(
     out
 }
 
-/// Gradients of the loss with respect to the three images (H x W x C, H x W, H x W).
-struct ImageGrads<'a> {
-    features: &'a [f64],
-    alpha: &'a [f64],
-    depth: Option<&'a [f64]>,
-}
-
 /// Per-Gaussian gradients with respect to the screen-space quantities of [`Projected`].
 #[derive(Debug, Clone, Copy)]
 struct ScreenGrad {
@@ -694,7 +687,7 @@ fn gradients(
     scene: &Scene,
     view: &View,
     background: &[f64],
-    grads: &ImageGrads,
+    grads: &OutputGradients<f64>,
     cutoff: Cutoff,
 ) -> GaussianGradients<f64> {
     let channels = scene.channels;
@@ -861,7 +854,7 @@ mod tests {
     }
 
     /// Σ grads·images: the scalar loss whose gradient the backward pass computes.
-    fn loss(out: &RenderOutput<f64>, grads: &ImageGrads) -> f64 {
+    fn loss(out: &RenderOutput<f64>, grads: &OutputGradients<f64>) -> f64 {
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
         dot(&out.features, grads.features)
             + dot(&out.alpha, grads.alpha)
@@ -933,7 +926,7 @@ mod tests {
         let g_depth: Vec<f64> = (0..pixels)
             .map(|_| f64::from(rng.uniform(-1.0, 1.0)))
             .collect();
-        let grads = ImageGrads {
+        let grads = OutputGradients {
             features: &g_features,
             alpha: &g_alpha,
             depth: depth.then_some(&g_depth[..]),

@@ -1,9 +1,9 @@
-// Stage 6, one workgroup per 16x16 tile, one thread per pixel: blends the tile's depth-sorted
-// list front to back with the contract's guards. Writes the image (features, alpha, and depth
+// Stage 6, one workgroup per TILE x TILE tile, one thread per pixel: blends the tile's
+// depth-sorted list front to back with the contract's guards. Writes the image (features, alpha, and depth
 // when WITH_DEPTH) and, for the backward pass, each pixel's final transmittance and the end of
 // the list prefix it consumed. Specialised with: CHANNELS, WITH_DEPTH, contract constants.
 
-// Per Gaussian: (u, v, z, opacity) then (conic a, b, c, 0).
+// Per Gaussian: (u, v, z, opacity), (conic a, b, c, 0), pixel box (see project.wgsl).
 @group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
 @group(0) @binding(1) var<storage, read> tile_values: array<u32>;
 @group(0) @binding(2) var<storage, read> ranges: array<u32>;
@@ -37,8 +37,12 @@ fn main(
     var consumed = start;
     for (var k = start; k < end; k++) {
         let g = tile_values[k];
-        let head = projected[2u * g];
-        let power = gaussian_power(centre - head.xy, projected[2u * g + 1u].xyz);
+        let bounds = projected[3u * g + 2u];
+        if any(centre < bounds.xy) || any(centre > bounds.zw) {
+            continue;
+        }
+        let head = projected[3u * g];
+        let power = gaussian_power(centre - head.xy, projected[3u * g + 1u].xyz);
         if power > 0.0 {
             continue;
         }

@@ -53,8 +53,12 @@ fn main(
     let base = feature_base();
     for (var k = consumed; k > start; k--) {
         let g = tile_values[k - 1u];
-        let head = projected[2u * g];
-        let conic = projected[2u * g + 1u].xyz;
+        let bounds = projected[3u * g + 2u];
+        if any(centre < bounds.xy) || any(centre > bounds.zw) {
+            continue;
+        }
+        let head = projected[3u * g];
+        let conic = projected[3u * g + 1u].xyz;
         let d = centre - head.xy;
         let power = gaussian_power(d, conic);
         if power > 0.0 {

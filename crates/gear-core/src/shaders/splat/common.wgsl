@@ -1,7 +1,7 @@
 // Shared by the per-frame kernels (project, blend and their backward passes): the frame
 // uniform and small numeric helpers. Contract constants (NEAR, FAR, LOW_PASS, MIN_ALPHA,
-// MAX_ALPHA, MIN_TRANSMITTANCE, QUAT_EPS, TILE) and CHANNELS, WITH_DEPTH are prepended by the
-// host at pipeline compile time.
+// MAX_ALPHA, MIN_TRANSMITTANCE, QUAT_EPS), the GPU tile size TILE, and CHANNELS, WITH_DEPTH
+// are prepended by the host at pipeline compile time.
 
 struct Frame {
     // Rows of world_to_cam: rotation in xyz, translation in w.
