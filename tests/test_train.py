@@ -152,3 +152,52 @@ def test_cli_stops_on_an_invalid_scene_with_its_problems(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "invalid scene" in err and "transforms_train_start.json" in err
     assert not (tmp_path / "out" / "checkpoints").exists()
+
+
+def refine_stage(**config):
+    from gear.kinematics import PartMotion
+    from gear.stages import Refine
+
+    views = tiny_views()
+    for v in views:  # one region per view: the object
+        v.regions = (v.alpha > 0.5).astype(np.int32)
+    tv = [TrainView.from_view(v) for v in views]
+    g = start_gaussians()
+    g.add_param("logits", 0.1 * torch.randn(len(g), 2, generator=torch.Generator().manual_seed(5)),
+                lr=0.05)
+    angle = np.deg2rad(4.0)  # a small hinge: below ε = 10°
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
+                    [0, 0, 1]])
+    motion = PartMotion.from_rt([(rot, np.array([0.01, 0.0, 0.0]))])
+    base = dict(em_interval=2, stage3_densify_until=0, joint_classify_iteration=10**6,
+                pseudo_min_area=1)
+    return Refine(g, motion, g.clone(), tv, tv, tiny_config(**{**base, **config}), seed=0)
+
+
+def test_e_steps_train_logits_not_motion_and_m_steps_the_reverse():
+    stage = refine_stage()
+    g, motion = stage.gaussians, stage.motion
+    qr, qd = motion.qr.detach().clone(), motion.qd.detach().clone()
+    logits = g["logits"].detach().clone()
+    terms = [stage.step(0), stage.step(1)]  # E
+    assert {"sam", "knn"} <= set(terms[0])
+    assert torch.equal(motion.qr.detach(), qr) and torch.equal(motion.qd.detach(), qd)
+    assert not torch.equal(g["logits"].detach(), logits)
+    logits = g["logits"].detach().clone()
+    terms = [stage.step(2), stage.step(3)]  # M
+    assert "sam" not in terms[0] and "knn" not in terms[0]
+    assert torch.equal(g["logits"].detach(), logits)
+    assert not torch.equal(motion.qd.detach(), qd)
+
+
+def test_joint_classification_makes_a_small_hinge_prismatic():
+    stage = refine_stage(resolve_ambiguous_joints=False)
+    stage.classify()
+    assert bool(stage.motion.prismatic[1])
+    qr, _ = stage.motion.motion()
+    assert torch.allclose(qr[1], torch.tensor([1.0, 0.0, 0.0, 0.0]))
+    # the [beyond] rule scores the readings on the target views and keeps a valid one
+    stage = refine_stage(resolve_ambiguous_joints=True)
+    stage.classify()
+    assert stage.events[-1]["event"] == "joint_classification"
+    assert torch.isfinite(torch.cat(stage.motion.motion())).all()
