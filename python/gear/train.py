@@ -35,9 +35,9 @@ class TrainResult:
 class RunLog:
     """log.jsonl (one JSON object per line) plus the console, unless quiet."""
 
-    def __init__(self, path: Path, quiet: bool) -> None:
+    def __init__(self, path: Path, quiet: bool, append: bool) -> None:
         self.path, self.quiet = path, quiet
-        self._fh = open(path, "a")
+        self._fh = open(path, "a" if append else "w")  # a resumed run continues its log
 
     def write(self, record: dict) -> None:
         self._fh.write(json.dumps(record, default=_jsonable) + "\n")
@@ -95,10 +95,11 @@ def initial_gaussians(views: list, config: TrainConfig, seed: int) -> Gaussians:
 
 
 class Trainer:
-    def __init__(self, scene: Scene, out_dir: Path, config: TrainConfig, quiet: bool) -> None:
+    def __init__(self, scene: Scene, out_dir: Path, config: TrainConfig, quiet: bool,
+                 resume: bool = False) -> None:
         self.scene, self.out_dir, self.config, self.quiet = scene, out_dir, config, quiet
         self.ckpt_dir = out_dir / "checkpoints"
-        self.log = RunLog(out_dir / "log.jsonl", quiet)
+        self.log = RunLog(out_dir / "log.jsonl", quiet, append=resume)
         self.timings: dict[str, float] = {}
         self.models: dict[str, Gaussians] = {}
         self.coarse: dict | None = None
@@ -281,7 +282,7 @@ def train(scene_dir: Path, out_dir: Path, config: TrainConfig, *, resume: bool =
     if state is not None:
         config = TrainConfig(**state["config"])
     config.save(out_dir / "config.json")
-    trainer = Trainer(scene, out_dir, config, quiet)
+    trainer = Trainer(scene, out_dir, config, quiet, resume=state is not None)
     if state is not None:
         trainer.timings.update(state["timings"])
         trainer.log.say(f"resuming from {state['stage']} iteration {state['iteration']}")
