@@ -87,8 +87,14 @@ def test_budget_rescales_like_fast():
     assert (n, small.stage3_iterations, small.joint_classify_iteration) == (3000, 3000, 1000)
     assert small.seed == 4
     assert budget_config("quick")[0] == make_config("quick")
-    with pytest.raises(ValueError, match="budget 'medium'"):
-        budget_config("medium")
+    quick = make_config("quick")
+    double, n = budget_config("quick:600")  # the quick schedule stretched to 600 + 600
+    assert (n, double.stage3_iterations) == (600, 600)
+    assert double.joint_classify_iteration == 2 * quick.joint_classify_iteration
+    assert double.max_gaussians == quick.max_gaussians  # the rest of the profile is kept
+    for bad in ("medium", "turbo:600", "quick:x"):
+        with pytest.raises(ValueError, match=f"budget '{bad}'"):
+            budget_config(bad)
 
 
 def test_ablation_variants_cover_the_studies():
@@ -135,7 +141,8 @@ def test_run_loop_records_every_run_and_failure(tmp_path, monkeypatch, capsys):
     code = main(["bench", "accuracy", "--scenes", str(scene), "--profiles", "quick,100",
                  "--out", str(out)])
     assert code == 0
-    assert [(s[1], s[2]) for s in seen] == [(600, "em"), (100, "em")]
+    quick_iterations = make_config("quick").stage3_iterations
+    assert [(s[1], s[2]) for s in seen] == [(quick_iterations, "em"), (100, "em")]
     rows = list(csv.DictReader(open(out / "accuracy.csv")))
     assert [r["budget"] for r in rows] == ["quick", "100"]
     assert rows[1]["scene"] == "my_scene" and float(rows[1]["total_s"]) == 3.0

@@ -5,8 +5,9 @@ Each (scene, budget[, ablation variant]) is trained with `gear.train.train`, sco
 to OUT/accuracy.csv, OUT/accuracy.md (a markdown table with the machine it ran on) and
 OUT/accuracy.png (each metric against total training time, one line per scene).
 
-Budgets: a profile name (quick, fast, full) or an iteration count N, meaning the full profile's
-schedule rescaled to N stage-1 + N stage-3 iterations the way `fast` rescales it to 10k + 10k.
+Budgets: a profile name (quick, fast, full), an iteration count N, meaning the full profile's
+schedule rescaled to N stage-1 + N stage-3 iterations the way `fast` rescales it to 10k + 10k,
+or PROFILE:N, that profile's schedule rescaled the same way (e.g. quick:600).
 Scenes: built-in object names (generated once into the work folder with `gear synth` settings
 given here) or paths to existing scene folders.
 """
@@ -38,7 +39,6 @@ METRICS = [
 ]
 EM_INTERVALS = (50, 250, 500, 2000, 3000)
 FLAWED_MASKS = ("mask-over", "mask-under")
-_FULL_ITERATIONS = 30_000
 # Schedule fields placed at a fraction of the run; `fast` scales them by 1/3 with the iterations.
 _SCALED_FIELDS = ("densify_until", "stage3_densify_until", "joint_classify_iteration",
                   "em_refine_joint_iterations")
@@ -77,7 +77,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenes", default="fridge,drawer_cabinet,storage7",
                         help="comma-separated built-in object names or scene folders")
     parser.add_argument("--profiles", default="quick,2000,fast",
-                        help="comma-separated budgets: quick|fast|full or an iteration count N")
+                        help="comma-separated budgets: quick|fast|full, an iteration count N "
+                        "(full rescaled) or PROFILE:N")
     parser.add_argument("--ablation", action="store_true",
                         help="instead of budgets: EM vs joint optimisation, EM interval "
                         f"{'/'.join(map(str, EM_INTERVALS))}, clean vs flawed masks, all at the "
@@ -94,24 +95,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def budget_config(budget: str, seed: int = 0) -> tuple[Any, int]:
-    """(TrainConfig, iterations per stage) of a budget token."""
+    """(TrainConfig, iterations per stage) of a budget token: PROFILE, N or PROFILE:N."""
     from gear.config import PROFILES, make_config
 
+    name, _, count = budget.partition(":") if ":" in budget else ("full", "", budget)
     if budget in PROFILES:
         config = make_config(budget, {"seed": seed})
         return config, config.stage1_iterations
     try:
-        n = int(budget)
+        n = int(count)
     except ValueError:
-        raise ValueError(f"budget {budget!r}: expected one of {PROFILES} or an iteration "
-                         "count") from None
+        n = -1
+    if name not in PROFILES or n < 0:
+        raise ValueError(f"budget {budget!r}: expected one of {PROFILES}, an iteration count N "
+                         "or PROFILE:N") from None
     if n < 10:
         raise ValueError(f"budget {budget!r}: at least 10 iterations")
-    full = make_config("full")
-    scale = n / _FULL_ITERATIONS
+    base = make_config(name)
+    scale = n / base.stage1_iterations
     changes: dict[str, Any] = {"seed": seed, "stage1_iterations": n, "stage3_iterations": n}
-    changes.update({f: max(1, round(getattr(full, f) * scale)) for f in _SCALED_FIELDS})
-    return full.replace(**changes), n
+    changes.update({f: max(1, round(getattr(base, f) * scale)) for f in _SCALED_FIELDS})
+    return base.replace(**changes), n
 
 
 def variants(ablation: bool) -> list[tuple[str, dict[str, Any], tuple[str, ...]]]:
