@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 
 import numpy as np
 import pytest
@@ -129,6 +130,7 @@ def test_run_loop_records_every_run_and_failure(tmp_path, monkeypatch, capsys):
         seen.append((scene_dir, config.stage3_iterations, config.schedule, config.em_interval))
         if config.schedule == "joint":
             raise RuntimeError("stage 3 iteration 7: non-finite loss")
+        out_dir.mkdir(parents=True, exist_ok=True)  # as the real trainer does
         return train_mod.TrainResult([], "start", {"stage1": 2.0, "stage3": 1.0})
 
     def fake_evaluate(out_dir, scene_dir):
@@ -147,6 +149,9 @@ def test_run_loop_records_every_run_and_failure(tmp_path, monkeypatch, capsys):
     assert [r["budget"] for r in rows] == ["quick", "100"]
     assert rows[1]["scene"] == "my_scene" and float(rows[1]["total_s"]) == 3.0
     assert rows[0]["axis_ang"] == "1.5" and rows[0]["type_mismatches"] == "1"
+    kept = json.loads((out / "accuracy_runs" / "outputs" / "my_scene-100-default" /
+                       "metrics.json").read_text())
+    assert kept["cd_w"] == 2.0  # each run keeps its full metrics next to its outputs
 
     seen.clear()
     code = main(["bench", "accuracy", "--scenes", str(scene), "--profiles", "100",

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
 import os
 import platform
@@ -162,6 +163,8 @@ def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: d
         result = train(scene_dir, out_dir, config, quiet=True)
         record.timings = dict(result.timings) or {"total": time.perf_counter() - t0}
         metrics = evaluate(out_dir, scene_dir)
+        # Per-joint rows and skip reasons stay with the run, as `gear eval` leaves them.
+        (Path(out_dir) / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     except (RuntimeError, ValueError) as err:
         record.status = f"failed: {err}"
         return record
