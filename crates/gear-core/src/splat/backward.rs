@@ -1,5 +1,6 @@
-//! The backward pass on the GPU: blend-backward (per pixel, back to front, atomic
-//! accumulation of per-Gaussian screen-space and feature gradients), then project-backward
+//! The backward pass on the GPU: blend-backward (per tile row, each pixel replayed back to
+//! front, row sums added atomically to per-Gaussian screen-space and feature gradients), then
+//! project-backward
 //! (per Gaussian, no atomics) to means, quats, log_scales and opacity logits. One submission,
 //! one readback of the packed gradients.
 

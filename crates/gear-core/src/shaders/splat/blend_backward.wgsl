@@ -2,8 +2,8 @@
 // prefix back to front, recovering each T_i = T_{i+1} / (1 - alpha_i) from the stored final T,
 // sums the row's gradient contributions per Gaussian in registers, and adds them to the
 // per-Gaussian gradients (screen-space geometry, opacity, z, features) with add_geometry /
-// add_gradient (atomic_float.wgsl or atomic_cas.wgsl, chosen by the host). Summing a row
-// first cut the atomics, which dominated the per-pixel version, several-fold.
+// add_gradient (atomic_float.wgsl or atomic_cas.wgsl, chosen by the host). Atomics took over
+// half of a per-pixel version's time on lavapipe; summing rows first made backward ~30% faster.
 // Specialised with: CHANNELS, WITH_DEPTH, contract constants.
 
 @group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
