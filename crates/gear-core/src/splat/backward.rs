@@ -1,7 +1,7 @@
-//! The backward pass on the GPU: blend-backward (per pixel, back to front, atomic
-//! accumulation of per-Gaussian screen-space and feature gradients), then project-backward
-//! (per Gaussian, no atomics) to means, quats, log_scales and opacity logits. One submission,
-//! one readback of the packed gradients.
+//! The backward pass on the GPU: blend-backward (per tile row, each pixel replayed back to
+//! front, row sums added atomically to per-Gaussian screen-space and feature gradients), then
+//! project-backward (per Gaussian, no atomics) to means, quats, log_scales and opacity logits.
+//! One submission, one readback of the packed gradients.
 
 use crate::error::{GearError, Result};
 use crate::gpu::GpuContext;
