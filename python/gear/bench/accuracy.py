@@ -265,7 +265,7 @@ def plot(records: Sequence[Run], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import NullFormatter
+    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
 
     ok = [r for r in records if r.status == "ok" and r.total_seconds > 0]
     cols = 3
@@ -275,6 +275,8 @@ def plot(records: Sequence[Run], path: Path) -> None:
     for r in ok:
         label = r.scene if r.variant == "default" else f"{r.scene} {r.variant}"
         lines.setdefault(label, []).append(r)
+    # One colour per line in every panel, so the single legend holds for all of them.
+    colours = {name: f"C{i % 10}" for i, name in enumerate(lines)}
     for ax, (key, label, log_y) in zip(axes.flat, METRICS, strict=False):
         drawn = False
         for name, runs in lines.items():
@@ -283,10 +285,14 @@ def plot(records: Sequence[Run], path: Path) -> None:
             if log_y:  # zeros cannot sit on a log axis: shown at the axis floor instead
                 points = [(t, max(v, 1e-4)) for t, v in points]
             if points:
-                ax.plot(*zip(*points, strict=True), marker="o", label=name)
+                ax.plot(*zip(*points, strict=True), marker="o", label=name,
+                        color=colours[name])
                 drawn = True
         ax.set_xscale("log")
-        ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on short ranges
+        # Labelled ticks at 1-2-5 steps: plain decades often leave a short time range unlabelled.
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_formatter(NullFormatter())
         if log_y and drawn:
             ax.set_yscale("log")
         if not drawn:
@@ -297,7 +303,8 @@ def plot(records: Sequence[Run], path: Path) -> None:
     for ax in list(axes.flat)[len(METRICS):]:
         ax.axis("off")
     if lines:
-        axes.flat[0].legend(fontsize=7)
+        handles = [plt.Line2D([], [], color=c, marker="o", label=n) for n, c in colours.items()]
+        axes.flat[0].legend(handles=handles, fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
