@@ -1,8 +1,9 @@
 // Stage 3, one thread per Gaussian in depth order: writes a (tile id, Gaussian) pair for every
 // tile of its rectangle that it reaches (tile_test.wgsl) at the scanned offset, never past the
 // next Gaussian's offset; should rounding make it find fewer tiles than tile_counts.wgsl did,
-// the rest of its slots get other tiles of its rectangle (harmless: the blend tests pixels). Pairs are thus in depth order, and a stable sort
-// by tile id alone leaves each tile's list sorted by depth (ties by index).
+// the rest of its slots get other tiles of its rectangle (harmless: the blend tests pixels).
+// Pairs are thus in depth order, and a stable sort by tile id alone leaves each tile's list
+// sorted by depth (ties by index).
 
 struct EmitParams {
     n: u32,

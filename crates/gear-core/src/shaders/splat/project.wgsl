@@ -30,7 +30,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     let level = 2.0 * max(log(p.opacity / MIN_ALPHA), 0.0);
     // dᵀ conic d <= level implies |d.x| <= sqrt(level Σ2D.a) and |d.y| <= sqrt(level Σ2D.c):
     // the per-axis extent, plus a pixel of slack for f32 rounding, bounds every pixel the
-    // Gaussian reaches. It is never wider than the contract's radius along the major axis.
+    // Gaussian reaches; narrower than the contract's major-axis radius for elongated ones.
     let extent = sqrt(level * vec2<f32>(p.cov.x, p.cov.z)) + vec2<f32>(1.0);
     let box_lo = p.mean2d - extent;
     let box_hi = p.mean2d + extent;
