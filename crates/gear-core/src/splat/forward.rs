@@ -141,6 +141,7 @@ pub(crate) fn forward_impl(
             (1, storage(&rects)),
             (2, storage(&offsets)),
             (3, count_params.as_entire_binding()),
+            (4, storage(&projected)),
         ],
         groups(n + 1, WG),
     );
@@ -183,6 +184,7 @@ pub(crate) fn forward_impl(
             (3, storage(&tile_pairs.keys)),
             (4, storage(&tile_pairs.values)),
             (5, emit_params.as_entire_binding()),
+            (6, storage(&projected)),
         ],
         groups(n, WG),
     );

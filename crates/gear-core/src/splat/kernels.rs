@@ -160,19 +160,19 @@ pub fn radix_scatter(bits: u32, identity_values: bool) -> ShaderSpec {
 }
 
 pub fn tile_counts() -> ShaderSpec {
-    ShaderSpec::new(
-        "splat_tile_counts",
+    const SOURCE: &str = concat!(
+        include_str!("../shaders/splat/tile_test.wgsl"),
         include_str!("../shaders/splat/tile_counts.wgsl"),
-        "main",
-    )
+    );
+    ShaderSpec::new("splat_tile_counts", SOURCE, "main").with("TILE", format!("{GPU_TILE}u"))
 }
 
 pub fn emit() -> ShaderSpec {
-    ShaderSpec::new(
-        "splat_emit",
+    const SOURCE: &str = concat!(
+        include_str!("../shaders/splat/tile_test.wgsl"),
         include_str!("../shaders/splat/emit.wgsl"),
-        "main",
-    )
+    );
+    ShaderSpec::new("splat_emit", SOURCE, "main").with("TILE", format!("{GPU_TILE}u"))
 }
 
 pub fn tile_ranges() -> ShaderSpec {

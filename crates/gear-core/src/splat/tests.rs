@@ -509,3 +509,23 @@ fn hard_cases_stay_finite() {
         true,
     );
 }
+
+/// Needles (one axis ~30x the others) at random angles: the blend only sees the tiles their
+/// 1/255 ellipse reaches (tile_test.wgsl), which drops most of a diagonal needle's bounding
+/// box; no pixel may lose a contribution.
+#[test]
+fn needles_match_reference() {
+    let mut scene = Scene::random_sized(300, 3, 31, -3.5);
+    for s in &mut scene.log_scales {
+        *s = [s[0] + 1.7, s[1] - 1.7, s[2] - 1.7];
+    }
+    for l in &mut scene.opacity_logits {
+        *l += 2.0;
+    }
+    for depth in [false, true] {
+        let (image, depth_err) = forward_errors(&scene, &camera(90, 70), depth);
+        for (what, e) in [("image", image), ("depth", depth_err)] {
+            assert!(e.max <= 1e-4, "depth={depth}: {what} error {e:?}");
+        }
+    }
+}

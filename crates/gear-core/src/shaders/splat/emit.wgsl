@@ -1,6 +1,9 @@
 // Stage 3, one thread per Gaussian in depth order: writes a (tile id, Gaussian) pair for every
-// tile of its rectangle at the scanned offset. Pairs are thus in depth order, and a stable sort
-// by tile id alone leaves each tile's list sorted by depth (ties by index).
+// tile of its rectangle that it reaches (tile_test.wgsl) at the scanned offset, never past the
+// next Gaussian's offset; should rounding make it find fewer tiles than tile_counts.wgsl did,
+// the rest of its slots get other tiles of its rectangle (harmless: the blend tests pixels).
+// Pairs are thus in depth order, and a stable sort by tile id alone leaves each tile's list
+// sorted by depth (ties by index).
 
 struct EmitParams {
     n: u32,
@@ -13,6 +16,7 @@ struct EmitParams {
 @group(0) @binding(3) var<storage, read_write> tile_keys: array<u32>;
 @group(0) @binding(4) var<storage, read_write> tile_values: array<u32>;
 @group(0) @binding(5) var<uniform> params: EmitParams;
+@group(0) @binding(6) var<storage, read> projected: array<vec4<f32>>;
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
@@ -23,11 +27,16 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     let g = order[i];
     let r = rects[g];
     var slot = offsets[i];
-    for (var y = r.y; y < r.w; y++) {
-        for (var x = r.x; x < r.z; x++) {
-            tile_keys[slot] = y * params.tiles_x + x;
-            tile_values[slot] = g;
-            slot++;
+    let end = offsets[i + 1u];
+    for (var round = 0u; round < 2u; round++) {
+        for (var y = r.y; y < r.w; y++) {
+            for (var x = r.x; x < r.z; x++) {
+                if slot < end && meets_tile(g, x, y) == (round == 0u) {
+                    tile_keys[slot] = y * params.tiles_x + x;
+                    tile_values[slot] = g;
+                    slot++;
+                }
+            }
         }
     }
 }

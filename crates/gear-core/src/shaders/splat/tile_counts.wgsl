@@ -1,5 +1,6 @@
-// Stage 2 input: the number of tiles each Gaussian touches, in depth order, plus a trailing
-// zero so that the exclusive scan's last element is the total number of intersections.
+// Stage 2 input: the number of tiles each Gaussian reaches (tile_test.wgsl) within its tile
+// rectangle, in depth order, plus a trailing zero so that the exclusive scan's last element is
+// the total number of intersections. Prefixed with tile_test.wgsl; specialised with TILE.
 
 struct CountParams {
     n: u32,
@@ -9,13 +10,21 @@ struct CountParams {
 @group(0) @binding(1) var<storage, read> rects: array<vec4<u32>>;
 @group(0) @binding(2) var<storage, read_write> counts: array<u32>;
 @group(0) @binding(3) var<uniform> params: CountParams;
+@group(0) @binding(4) var<storage, read> projected: array<vec4<f32>>;
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = gid.x + gid.y * nwg.x * 256u;
     if i < params.n {
-        let r = rects[order[i]];
-        counts[i] = (r.z - r.x) * (r.w - r.y);
+        let g = order[i];
+        let r = rects[g];
+        var count = 0u;
+        for (var y = r.y; y < r.w; y++) {
+            for (var x = r.x; x < r.z; x++) {
+                count += u32(meets_tile(g, x, y));
+            }
+        }
+        counts[i] = count;
     } else if i == params.n {
         counts[i] = 0u;
     }
