@@ -12,7 +12,7 @@ data-driven choices (voxel size, K) and where this goes beyond the paper.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,6 +47,15 @@ SPACING_FACTOR = 2.0
 # dynamic voxels (overlap >= DETECT_OVERLAP).
 MIN_PART_VOXELS = 8
 MIN_PART_FRACTION = 0.01
+# With the target state's images (`on_target_surface`), a part must also be seen to move: at least
+# this fraction of its centres seen on the target's surface once moved, and seen through (empty)
+# where they were.
+MIN_SEEN_CHANGE = 0.3
+SURFACE_TOLERANCE_VOXELS = 2.0
+# look(points [M,3], tolerance) -> (on_surface [M] bool, free [M] bool): which points lie on the
+# surface the target state's images show (within `tolerance` in depth) and which points those
+# images see through (empty space).
+SurfaceTest = Callable[[np.ndarray, float], tuple[np.ndarray, np.ndarray]]
 MAX_TARGET_CANDIDATES = 16
 MAX_DENSE_CELLS = 1 << 26
 SPACING_SAMPLES = 20000
@@ -382,8 +391,23 @@ class _Part:
         return self.hypotheses[0]
 
 
+def seen_change(
+    points: np.ndarray, motion: Hypothesis, on_surface: SurfaceTest, tolerance: float
+) -> float:
+    """Whether the target images see a component move: the smaller of the fraction of its
+    centres on the target's surface where `motion` puts them and the fraction seen through
+    (empty) where they are. Matter only one state reveals (a cabinet's interior, hidden behind
+    the closed door, not empty) or a surface the two reconstructions merely place a little
+    differently (still there) scores low."""
+    moved = points @ np.asarray(motion.rot).T + np.asarray(motion.trans)
+    landed, _ = on_surface(moved, tolerance)
+    _, vacated = on_surface(points, tolerance)
+    return float(min(landed.mean(), vacated.mean()))
+
+
 def find_parts(
-    canon: np.ndarray, target: np.ndarray, num_parts: int | None, voxel_size: float
+    canon: np.ndarray, target: np.ndarray, num_parts: int | None, voxel_size: float,
+    on_surface: SurfaceTest | None = None,
 ) -> tuple[list[_Part], np.ndarray, list[str]]:
     """Movable parts (their canonical components and initial motion) and each canonical
     point's component label.
@@ -393,7 +417,8 @@ def find_parts(
     separate dynamic pieces, its front and its back. With K given, parts whose motion is
     trusted come first and untrusted components (identity motion) fill the remaining slots.
     With K unknown, a component becomes a part only above the size floors and when its motion
-    explains at least DETECT_OVERLAP of the change it maps onto.
+    explains at least DETECT_OVERLAP of the change it maps onto, and, given `on_surface`, when
+    the target images see it move (seen_change >= MIN_SEEN_CHANGE).
     """
     split = split_static_dynamic(canon, target, voxel_size)
     canon_labels = split.grid.point_labels(canon, split.labels[0])
@@ -419,6 +444,13 @@ def find_parts(
         cells = np.argwhere(split.labels[0] == comp)
         owner = next((p for p in parts if _moves_along(split, cells, p.motion, hyps[0])), None)
         detected = hyps[0].explained >= DETECT_OVERLAP
+        if detected and wanted is None and owner is None and on_surface is not None:
+            seen = seen_change(canon[canon_labels == comp], hyps[0], on_surface,
+                               SURFACE_TOLERANCE_VOXELS * voxel_size)
+            detected = seen >= MIN_SEEN_CHANGE
+            if not detected:
+                notes.append(f"component {comp} not a part: the target images see only "
+                             f"{seen:.2f} of it move")
         if owner is not None:
             owner.components.append(comp)
         elif hyps[0].trusted and (detected or wanted is not None):
@@ -436,10 +468,14 @@ def coarse_init(
     means_end: np.ndarray,
     num_parts: int | None = None,
     voxel_size: float | None = None,
+    on_target_surface: Callable[[str], SurfaceTest] | None = None,
 ) -> CoarseInit:
     """Stage 2 of METHOD.md: canonical state, K, part logits and initial part motions.
 
     `num_parts` (K, static part included) and `voxel_size` are estimated from the data when None.
+    `on_target_surface(target_state)`, when given, returns that state's SurfaceTest (from its
+    images); K estimation then keeps only parts the target images see move (METHOD §3's 2D
+    confirmation of K).
     """
     start = _check_points(means_start, "means_start")
     end = _check_points(means_end, "means_end")
@@ -451,18 +487,21 @@ def coarse_init(
     canonical, note = choose_canonical(start, end)
     canon, target = (start, end) if canonical == "start" else (end, start)
     notes = [note]
+    on_surface = None
+    if on_target_surface is not None and num_parts is None:
+        on_surface = on_target_surface("end" if canonical == "start" else "start")
     if voxel_size is not None:
         size = float(voxel_size)
-        parts, canon_labels, more = find_parts(canon, target, num_parts, size)
+        parts, canon_labels, more = find_parts(canon, target, num_parts, size, on_surface)
     elif num_parts is not None:
         size = Scale.of(np.concatenate([canon, target])).voxel_size(single_part=num_parts == 2)
-        parts, canon_labels, more = find_parts(canon, target, num_parts, size)
+        parts, canon_labels, more = find_parts(canon, target, num_parts, size, on_surface)
     else:
         # Detect on the fine grid; a single part is then redone on the coarse grid, as the paper
         # does for one-joint objects, unless the coarse grid loses it.
         scale = Scale.of(np.concatenate([canon, target]))
         size = scale.voxel_size(single_part=False)
-        parts, canon_labels, more = find_parts(canon, target, None, size)
+        parts, canon_labels, more = find_parts(canon, target, None, size, on_surface)
         if len(parts) == 1:
             coarse_size = scale.voxel_size(single_part=True)
             again = find_parts(canon, target, 2, coarse_size)

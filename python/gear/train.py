@@ -16,9 +16,10 @@ import torch
 from tqdm import tqdm
 
 from gear import checkpoint
+from gear.coarse import SurfaceTest
 from gear.config import TrainConfig
 from gear.data import Scene, load_scene
-from gear.model import Gaussians, points_from_depth, points_from_masks, scene_extent
+from gear.model import Gaussians, points_from_depth, points_from_masks, render, scene_extent
 from gear.stages import ReconstructState, Refine, TrainView
 
 STATES = ("start", "end")
@@ -92,6 +93,40 @@ def initial_gaussians(views: list, config: TrainConfig, seed: int) -> Gaussians:
             pick = rng.choice(len(pts), config.init_max_points, replace=False)
             pts, cols = pts[pick], cols[pick]
     return Gaussians.from_points(pts, cols)
+
+
+def surface_test(model: Gaussians, views: list[TrainView], max_views: int = 8) -> SurfaceTest:
+    """`look(points [M,3], tolerance) -> (on_surface [M], free [M])` over up to `max_views` of
+    `views` rendered from `model`: whether each point lies, within `tolerance` in depth, on the
+    surface shown (alpha > 0.5) in some view, and whether some view sees through it (outside
+    the silhouette, or in front of the surface by more than `tolerance`). Stage 2 uses it on
+    the target state's stage-1 model to check that the target images see a part move."""
+    seen = []
+    with torch.no_grad():
+        for view in views[:: max(1, len(views) // max_views)]:
+            out = render(model["means"], model["quats"], model["log_scales"], model["opacity"],
+                         model.rgb(), view.camera, torch.zeros(3), depth=True)
+            alpha = out.alpha.numpy()
+            depth = out.depth.numpy() / np.maximum(alpha, 1e-6)  # expected depth of the surface
+            seen.append((view.camera, alpha > 0.5, depth))
+
+    def look(points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        hit = np.zeros(len(points), dtype=bool)
+        free = np.zeros(len(points), dtype=bool)
+        for camera, solid, depth in seen:
+            uv, z = camera.project(points)
+            ok = np.isfinite(uv).all(axis=1) & (z > 0)
+            u = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
+            v = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
+            ok &= (u >= 0) & (v >= 0) & (u < camera.width) & (v < camera.height)
+            idx = np.flatnonzero(ok)
+            uu, vv = u[idx], v[idx]
+            gap = z[idx] - depth[vv, uu]
+            hit[idx[solid[vv, uu] & (np.abs(gap) < tolerance)]] = True
+            free[idx[~solid[vv, uu] | (gap < -tolerance)]] = True
+        return hit, free
+
+    return look
 
 
 class Trainer:
@@ -211,6 +246,7 @@ class Trainer:
             self.models["end"]["means"].detach().numpy(),
             c.num_parts,
             c.voxel_size,
+            on_target_surface=lambda state: surface_test(self.models[state], self.views[state]),
         )
         self.timings["stage2"] = time.perf_counter() - t0
         self.coarse = {
