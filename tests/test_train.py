@@ -81,8 +81,15 @@ def test_stage1_reduces_the_photometric_loss():
     assert last < 0.8 * first
 
 
-def test_resumed_stage_reproduces_the_uninterrupted_run():
-    from gear import checkpoint
+def test_resumed_stage_reproduces_the_uninterrupted_run(monkeypatch):
+    from gear import checkpoint, model
+    from gear.splat_reference import rasterize_dense
+
+    # The GPU backward sums with atomics, so two identical runs differ by float reordering,
+    # which a few optimizer steps amplify past any fixed tolerance. This test is about the
+    # checkpoint bookkeeping (parameters, Adam moments, RNG state), so it renders with the
+    # deterministic torch reference, where resuming must reproduce the run exactly.
+    monkeypatch.setattr(model, "rasterizer", lambda: rasterize_dense)
 
     views = [TrainView.from_view(v) for v in tiny_views()]
     config = tiny_config()
@@ -101,9 +108,9 @@ def test_resumed_stage_reproduces_the_uninterrupted_run():
         resumed.step(i)
     a, b = params_of(straight), params_of(resumed)
     assert a.keys() == b.keys()
-    for name in a:  # the GPU backward sums with atomics: equal up to float reordering
+    for name in a:
         assert a[name].shape == b[name].shape
-        assert torch.allclose(a[name], b[name], atol=1e-5), name
+        assert torch.allclose(a[name], b[name], rtol=0, atol=1e-7), name
 
 
 def test_non_finite_loss_names_stage_iteration_and_term():
