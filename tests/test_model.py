@@ -44,8 +44,10 @@ def test_prune_keeps_adam_moments_aligned():
     before = {n: moments(gs, n).clone() for n in gs.params}
     means_before = gs["means"].detach().clone()
     keep = torch.tensor([True, False, True, True, False, True])
+    generation = gs.generation
     gs.keep(keep)
     assert len(gs) == 4
+    assert gs.generation == generation + 1  # the set changed: KNN caches must rebuild
     assert torch.equal(gs["means"].detach(), means_before[keep])
     for name in gs.params:
         assert torch.equal(moments(gs, name), before[name][keep]), name
@@ -60,8 +62,10 @@ def test_append_gives_new_gaussians_zero_moments():
     step_with_row_gradients(gs)
     old = moments(gs, "opacity").clone()
     extra = {n: t.detach()[:2].clone() for n, t in gs.params.items()}
+    generation = gs.generation
     gs.append(extra)
     assert len(gs) == 5
+    assert gs.generation == generation + 1
     assert torch.equal(moments(gs, "opacity")[:3], old)
     assert torch.equal(moments(gs, "opacity")[3:], torch.zeros(2))
     with pytest.raises(ValueError, match="append"):

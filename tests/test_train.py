@@ -208,3 +208,24 @@ def test_joint_classification_makes_a_small_hinge_prismatic():
     stage.classify()
     assert stage.events[-1]["event"] == "joint_classification"
     assert torch.isfinite(torch.cat(stage.motion.motion())).all()
+
+
+def test_knn_lists_follow_a_prune_and_densify_that_keeps_the_count():
+    from gear.model import nearest_neighbours
+
+    stage = refine_stage()
+    g = stage.gaussians
+    before = stage.neighbours().clone()
+    assert stage.neighbours() is stage.neighbours()  # reused while the set is unchanged
+    # Prune Gaussian 0 and add a far-away one: same count, different set.
+    keep = torch.ones(len(g), dtype=torch.bool)
+    keep[0] = False
+    g.keep(keep)
+    extra = {name: t.detach()[:1].clone() for name, t in g.params.items()}
+    extra["means"] = torch.tensor([[5.0, 5.0, 5.0]])
+    g.append(extra)
+    assert len(g) == len(before)
+    expected = torch.as_tensor(nearest_neighbours(g["means"].detach().numpy(),
+                                                  stage.config.knn_neighbors))
+    assert not torch.equal(expected, before)
+    assert torch.equal(stage.neighbours(), expected)

@@ -90,6 +90,9 @@ class Gaussians:
             name: t.detach().clone().float().requires_grad_(True) for name, t in params.items()
         }
         self.optimizer: torch.optim.Adam | None = None
+        # Bumped by every edit of the set (densify, prune): caches keyed on the Gaussians
+        # (e.g. stage 3's KNN lists) compare it, since a prune + densify can keep the count.
+        self.generation = 0
         self.reset_stats()
 
     # --- construction ---
@@ -175,6 +178,7 @@ class Gaussians:
         if self.optimizer is not None:
             for group in self.optimizer.param_groups:
                 group["params"] = [self.params[group["name"]]]
+        self.generation += 1
         self.reset_stats()
 
     def keep(self, mask: torch.Tensor) -> None:

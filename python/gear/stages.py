@@ -111,14 +111,10 @@ class _Stage:
                 max_scale, c.max_gaussians, self.generator,
             )
             self.events.append({"event": "densify", "iteration": it, **info})
-            self.on_topology_change(g)
         if it > 0 and it % c.opacity_reset_interval == 0 and it < densify_until:
             protect = g.small_part_mask(c.small_part_threshold) if g.num_parts > 1 else None
             n = g.reset_opacity(protect)
             self.events.append({"event": "opacity_reset", "iteration": it, "reset": n})
-
-    def on_topology_change(self, g: Gaussians) -> None:
-        """Hook: the Gaussians' count changed."""
 
     def generator_state(self) -> torch.Tensor:
         return self.generator.get_state()
@@ -206,6 +202,7 @@ class Refine(_Stage):
         self.motion_optimizer = self._make_motion_optimizer()
         self.total = config.stage3_iterations
         self._neighbours: torch.Tensor | None = None
+        self._neighbours_generation = -1  # Gaussians.generation the lists were built for
         self._anchor_cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
 
     def _make_motion_optimizer(self) -> torch.optim.Adam:
@@ -218,14 +215,15 @@ class Refine(_Stage):
             eps=1e-15,
         )
 
-    def on_topology_change(self, g: Gaussians) -> None:
-        self._neighbours = None
-
     def neighbours(self) -> torch.Tensor:
-        """KNN of the canonical centres, rebuilt lazily after the Gaussians changed."""
-        if self._neighbours is None or len(self._neighbours) != len(self.gaussians):
-            pts = self.gaussians["means"].detach().numpy()
+        """KNN of the canonical centres, rebuilt lazily whenever the set of Gaussians changed
+        (densify/prune, even when the count stays the same). Between two such edits the lists
+        are reused while the centres move a little."""
+        g = self.gaussians
+        if self._neighbours is None or self._neighbours_generation != g.generation:
+            pts = g["means"].detach().numpy()
             self._neighbours = torch.as_tensor(nearest_neighbours(pts, self.config.knn_neighbors))
+            self._neighbours_generation = g.generation
         return self._neighbours
 
     def _anchor(self, view_index: int, view: TrainView):
