@@ -18,7 +18,7 @@ def summary(scene: Scene) -> str:
         f"{state} {'+'.join(str(len(vs)) for vs in splits.values())}"
         for state, splits in scene.views.items()
     )
-    first = scene.all_views()[0].camera
+    sizes = sorted({(v.camera.width, v.camera.height) for v in scene.all_views()})
     has = [
         name
         for name, flag in (
@@ -33,7 +33,7 @@ def summary(scene: Scene) -> str:
         has.append(f"GT {len(scene.gt.joints)} joint(s), {n_meshes} mesh(es)")
     return (
         f"{scene.root}: ok, {len(scene.all_views())} views ({counts}; train+test), "
-        f"{first.width}x{first.height}, has {', '.join(has) or 'RGBA only'}"
+        f"{' / '.join(f'{w}x{h}' for w, h in sizes)}, has {', '.join(has) or 'RGBA only'}"
     )
 
 

@@ -59,8 +59,8 @@ class _Reader:
     def __init__(self, root: Path) -> None:
         self.root = root
         self.problems: list[str] = []
-        self.size: tuple[int, int] | None = None  # (width, height) of the first image read
-        self.size_source = ""
+        # transforms file -> ((width, height), image that set it): the first image read
+        self.sizes: dict[str, tuple[tuple[int, int], str]] = {}
 
     def problem(self, path: Path | str, what: str) -> None:
         rel = Path(path)
@@ -82,27 +82,27 @@ class _Reader:
             self.problem(path, f"unreadable image ({err.__class__.__name__})")
             return None
 
-    def _check_size(self, path: Path, size: tuple[int, int]) -> bool:
-        """All rgba images of a scene share one size (the first one read sets it)."""
-        if self.size is None:
-            self.size, self.size_source = size, str(path.relative_to(self.root))
-        elif size != self.size:
+    def _check_size(self, path: Path, size: tuple[int, int], group: str) -> bool:
+        """The rgba images of one transforms file share one size (its first image sets it): the
+        file has one set of intrinsics. The states and splits may differ from each other."""
+        first = self.sizes.setdefault(group, (size, str(path.relative_to(self.root))))
+        if size != first[0]:
             self.problem(
                 path,
-                f"size {size[0]}x{size[1]} differs from {self.size_source} "
-                f"({self.size[0]}x{self.size[1]})",
+                f"size {size[0]}x{size[1]} differs from {first[1]} "
+                f"({first[0][0]}x{first[0][1]}) of the same {group}",
             )
             return False
         return True
 
-    def read_rgba(self, path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    def read_rgba(self, path: Path, group: str) -> tuple[np.ndarray, np.ndarray] | None:
         img = self._open(path)
         if img is None:
             return None
         if "A" not in img.getbands() and "transparency" not in img.info:
             self.problem(path, f"has no alpha channel (mode {img.mode}); alpha is the object mask")
             return None
-        if not self._check_size(path, img.size):
+        if not self._check_size(path, img.size, group):
             return None
         arr = np.asarray(img.convert("RGBA"), dtype=np.float32) / 255.0
         alpha = np.ascontiguousarray(arr[..., 3])
@@ -214,7 +214,7 @@ def _load_split(reader: _Reader, state: str, split: str, required: bool) -> list
         rel = PurePosixPath(file_path.removeprefix("./"))
         if not rel.suffix:
             rel = rel.with_suffix(".png")
-        rgba = reader.read_rgba(reader.root / rel)
+        rgba = reader.read_rgba(reader.root / rel, json_path.name)
         try:
             matrix = np.asarray(frame.get("transform_matrix"), dtype=np.float64)
             Camera.from_blender(matrix, angle_x, 1, 1, angle_y)  # the pose alone, any image
