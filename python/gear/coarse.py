@@ -81,11 +81,17 @@ class CoarseInit:
 @dataclass
 class Plane:
     """Least-squares plane of a point set: centroid, principal axes (rows, largest extent
-    first; the last is the unit normal) and the ratio of the largest to the smallest extent."""
+    first; the last is the unit normal), the extent along each axis and the ratio of the largest
+    to the smallest extent."""
 
     centroid: np.ndarray
     axes: np.ndarray
     aspect: float
+    extents: np.ndarray
+
+    def width_along(self, direction: np.ndarray) -> float:
+        """The point set's extent along `direction` (unit), from its principal extents."""
+        return float(np.abs(self.axes @ direction) @ self.extents)
 
     @property
     def normal(self) -> np.ndarray:
@@ -110,6 +116,7 @@ class Hypothesis:
     trans: np.ndarray
     landed: float = 0.0
     explained: float = 0.0
+    fold: bool = False  # a half turn between parallel planes (see init_motion)
 
     @property
     def trusted(self) -> bool:
@@ -131,7 +138,7 @@ def fit_plane(points: np.ndarray) -> Plane:
     lo, hi = np.percentile(proj, [2, 98], axis=0)
     extent = hi - lo
     aspect = float(extent.max() / max(extent.min(), 1e-9 * max(extent.max(), 1e-300)))
-    return Plane(centroid, axes / np.linalg.norm(axes, axis=1, keepdims=True), aspect)
+    return Plane(centroid, axes / np.linalg.norm(axes, axis=1, keepdims=True), aspect, extent)
 
 
 def rotation_about_line(
@@ -156,9 +163,9 @@ def hinge_candidates(
     arbitrary). Nearly parallel planes have no usable intersection; if `dst` lies beside `src`
     (their centroids apart mostly within the plane) they give the half turns that fold one onto
     the other: a door opened by 180 degrees, which the plane intersection cannot see. The fold
-    axis is the in-plane principal axis (of both planes) most across the centroids' offset, through
-    their midpoint moved by each of `fold_offsets` along the offset and along the normal (the
-    two pieces are rarely cut symmetrically about the hinge, nor is the hinge in their plane).
+    axis lies in the (mean) plane across the centroids' offset, through their midpoint moved
+    by each of `fold_offsets` along the offset and along the normal (the two pieces are rarely
+    cut symmetrically about the hinge, nor is the hinge in their plane).
     """
     cos = float(np.dot(src.normal, dst.normal))
     if abs(cos) > PARALLEL_COS:
@@ -167,11 +174,17 @@ def hinge_candidates(
         length = float(np.linalg.norm(beside))
         if length <= 0.5 * np.linalg.norm(offset):
             return []
+        # Folded about an axis at or near its edge, a piece lands beside its old place, its
+        # centroid moved by about its width. Two slivers of a door turned by a few degrees lie
+        # much closer: that is no fold.
+        if length < 0.5 * max(src.width_along(beside / length), dst.width_along(beside / length)):
+            return []
         across = beside / length
-        axis = min(src.axes[:2], key=lambda a: abs(float(np.dot(a, across))))
-        # The same principal axis of dst (a half turn keeps the axis) halves the sampling noise.
-        twin = max(dst.axes[:2], key=lambda a: abs(float(np.dot(a, axis))))
-        axis = axis + np.sign(np.dot(twin, axis)) * twin
+        # A half turn reflects a piece's centroid through the axis, so the axis lies in the
+        # plane and across the centroids' offset. (The slab's principal axes would do for a
+        # long door, but a square one has none in its plane.)
+        normal = src.normal + np.sign(cos) * dst.normal
+        axis = np.cross(normal / np.linalg.norm(normal), across)
         mid = (src.centroid + dst.centroid) / 2
         return [
             rotation_about_line(axis, mid + a * across + b * src.normal, np.pi)
@@ -336,7 +349,10 @@ def init_motion(
     floor (when the component itself is planar), and the best whole-voxel slide. Among those
     explaining enough target change, the one landing most cells on target matter wins (a hinge
     on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
-    follows when it lands within TIE_MARGIN of the winner.
+    follows when it lands within TIE_MARGIN of the winner, or whatever it lands when it is a
+    fold: a slab turned by half a turn shows the other state its formerly hidden face, so half
+    of it lands where that state saw nothing (the back of a closed door), while a slide of the
+    symmetric slab lands both faces; the voxels cannot tell the two apart, the images can.
     """
     src_mask = split.labels[0] == comp
     src_cells = np.argwhere(src_mask)
@@ -349,8 +365,11 @@ def init_motion(
                 break
             plane = fit_plane(target[target_labels == j])
             if plane.is_plane:
+                fold = abs(float(np.dot(canon_plane.normal, plane.normal))) > PARALLEL_COS
                 for rot, trans in hinge_candidates(canon_plane, plane, fold_offsets):
-                    candidates.append(split.score(src_cells, "hinge", rot, trans))
+                    hyp = split.score(src_cells, "hinge", rot, trans)
+                    hyp.fold = fold
+                    candidates.append(hyp)
     shift = split.best_slide(src_mask)
     if shift is not None:
         candidates.append(split.score(src_cells, "slide", np.eye(3), shift))
@@ -359,7 +378,10 @@ def init_motion(
         return [IDENTITY]
     # max() keeps the first of equal scores: hinges come first.
     best = max(trusted, key=lambda h: h.landed)
-    others = [h for h in trusted if h.kind != best.kind and h.landed >= best.landed - TIE_MARGIN]
+    others = [
+        h for h in trusted
+        if h.kind != best.kind and (h.fold or h.landed >= best.landed - TIE_MARGIN)
+    ]
     return [best] + ([max(others, key=lambda h: h.landed)] if others else [])
 
 
@@ -442,7 +464,10 @@ def find_parts(
             split, comp, fit_plane(canon[canon_labels == comp]), target, target_labels
         )
         cells = np.argwhere(split.labels[0] == comp)
-        owner = next((p for p in parts if _moves_along(split, cells, p.motion, hyps[0])), None)
+        # Any reading of a part counts: a safe door's dial, a component of its own, moves
+        # with the door only under the half turn that may not be the door's first reading.
+        owner = next((p for p in parts
+                      if any(_moves_along(split, cells, h, hyps[0]) for h in p.hypotheses)), None)
         detected = hyps[0].explained >= DETECT_OVERLAP
         if detected and wanted is None and owner is None and on_surface is not None:
             seen = seen_change(canon[canon_labels == comp], hyps[0], on_surface,
@@ -461,6 +486,15 @@ def find_parts(
     if wanted is not None:
         parts += spare[: max(0, wanted - len(parts))]
     return parts, canon_labels, notes
+
+
+def _holds_a_part(parts: list[_Part], canon_labels: np.ndarray) -> bool:
+    """Whether some part has a trusted motion and at least MIN_PART_FRACTION of the centres."""
+    return any(
+        p.motion.trusted
+        and np.isin(canon_labels, p.components).mean() >= MIN_PART_FRACTION
+        for p in parts
+    )
 
 
 def coarse_init(
@@ -494,8 +528,15 @@ def coarse_init(
         size = float(voxel_size)
         parts, canon_labels, more = find_parts(canon, target, num_parts, size, on_surface)
     elif num_parts is not None:
-        size = Scale.of(np.concatenate([canon, target])).voxel_size(single_part=num_parts == 2)
+        scale = Scale.of(np.concatenate([canon, target]))
+        size = scale.voxel_size(single_part=num_parts == 2)
         parts, canon_labels, more = find_parts(canon, target, num_parts, size, on_surface)
+        if num_parts == 2 and not _holds_a_part(parts, canon_labels):
+            # A motion under one coarse voxel (a door turned by 2 degrees, a drawer pulled by
+            # 1 % of the object) leaves the coarse grid nothing, or a few stray cells.
+            size = scale.voxel_size(single_part=False)
+            notes.append("the coarse grid shows no part that moves; the fine grid is used")
+            parts, canon_labels, more = find_parts(canon, target, num_parts, size, on_surface)
     else:
         # Detect and initialise on the fine grid, even when one part is found: redoing a single
         # part on the paper's coarse grid turned the measured hinge of the built-in fridge (96 px)
