@@ -51,3 +51,22 @@ def test_info_command_runs_check():
     )
     assert out.returncode == 0, out.stderr
     assert "adapter" in out.stdout and ": ok" in out.stdout
+
+
+def test_torch_thread_count_comes_from_the_environment(monkeypatch):
+    import torch
+
+    from gear.device import limit_torch_threads
+
+    before = torch.get_num_threads()
+    try:
+        monkeypatch.setenv("GEAR_TORCH_THREADS", "2")
+        assert limit_torch_threads() == 2 and torch.get_num_threads() == 2
+        monkeypatch.delenv("GEAR_TORCH_THREADS")
+        assert limit_torch_threads() == 1 and torch.get_num_threads() == 1
+        for bad in ("0", "two", "-1"):
+            monkeypatch.setenv("GEAR_TORCH_THREADS", bad)
+            with pytest.raises(ValueError, match="GEAR_TORCH_THREADS"):
+                limit_torch_threads()
+    finally:
+        torch.set_num_threads(before)

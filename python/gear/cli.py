@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 
 import gear.commands
 from gear import __version__
+from gear.device import limit_torch_threads
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -37,6 +38,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     handler: Handler = args.handler
     try:
+        limit_torch_threads()
         return handler(args)
     except KeyboardInterrupt:
         print("gear: interrupted", file=sys.stderr)
