@@ -521,9 +521,10 @@ def coarse_init(
     canonical, note = choose_canonical(start, end)
     canon, target = (start, end) if canonical == "start" else (end, start)
     notes = [note]
+    target_state = "end" if canonical == "start" else "start"
     on_surface = None
     if on_target_surface is not None and num_parts is None:
-        on_surface = on_target_surface("end" if canonical == "start" else "start")
+        on_surface = on_target_surface(target_state)
     if voxel_size is not None:
         size = float(voxel_size)
         parts, canon_labels, more = find_parts(canon, target, num_parts, size, on_surface)
@@ -533,10 +534,14 @@ def coarse_init(
         parts, canon_labels, more = find_parts(canon, target, num_parts, size, on_surface)
         if num_parts == 2 and not _holds_a_part(parts, canon_labels):
             # A motion under one coarse voxel (a door turned by 2 degrees, a drawer pulled by
-            # 1 % of the object) leaves the coarse grid nothing, or a few stray cells.
-            size = scale.voxel_size(single_part=False)
-            notes.append("the coarse grid shows no part that moves; the fine grid is used")
-            parts, canon_labels, more = find_parts(canon, target, num_parts, size, on_surface)
+            # 1 % of the object) leaves the coarse grid nothing, or a few stray cells. The fine
+            # grid sees it, and sampling noise too: only a part detected as with K unknown counts.
+            fine = scale.voxel_size(single_part=False)
+            look = None if on_target_surface is None else on_target_surface(target_state)
+            found, labels, notes_fine = find_parts(canon, target, None, fine, look)
+            if found:
+                notes.append("the coarse grid shows no part that moves; the fine grid does")
+                size, parts, canon_labels, more = fine, found[:1], labels, notes_fine
     else:
         # Detect and initialise on the fine grid, even when one part is found: redoing a single
         # part on the paper's coarse grid turned the measured hinge of the built-in fridge (96 px)
