@@ -229,3 +229,38 @@ def test_knn_lists_follow_a_prune_and_densify_that_keeps_the_count():
                                                   stage.config.knn_neighbors))
     assert not torch.equal(expected, before)
     assert torch.equal(stage.neighbours(), expected)
+
+
+@pytest.mark.skipif(not GPU_RASTERIZER, reason="needs the GPU rasterizer in gear._core")
+def test_identical_states_give_one_static_part_and_no_joint(tmp_path):
+    """The train.py branch for a scene without motion: stage 2 finds one part, the run says
+    so, skips stage 3 and writes the canonical stage-1 model as one static part."""
+    import dataclasses
+
+    from gear.data import load_scene
+    from gear.data.write import write_scene
+    from gear.synth import generate
+    from gear.train import train
+
+    rendered = load_scene(generate("fridge", tmp_path / "fridge", res=32, views=4, test_views=1))
+    # The start state's images (same cameras) serve as both states.
+    same = {state: {split: [dataclasses.replace(v, name=v.name.replace("start", state, 1))
+                            for v in views] for split, views in rendered.views["start"].items()}
+            for state in ("start", "end")}
+    scene = write_scene(tmp_path / "scene", same)
+    out = tmp_path / "out"
+    # Centres frozen in stage 1: both models stay the same depth back-projection, so stage 2
+    # sees the identical states (a few free iterations add centre noise that the fine voxel
+    # grid of K estimation may read as a small moving part).
+    config = make_config("quick", dict(stage1_iterations=2, lr_means=1e-7, lr_means_final=1e-8,
+                                       mesh_voxel=0.04, mesh_trunc=0.16))
+    result = train(scene, out, config, quiet=True)
+    assert result.joints == []
+    assert json.loads((out / "joints.json").read_text())["joints"] == []
+    parts = np.load(out / "parts.npy")
+    assert len(parts) > 0 and not parts.any()
+    log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert any("no motion detected" in r.get("message", "") for r in log)
+    assert not any(r.get("stage") == "stage3" for r in log)  # stage 3 never ran
+    assert (out / "meshes/end/static.ply").exists()
+    assert not list((out / "meshes/end").glob("part_*.ply"))
