@@ -181,20 +181,24 @@ def refine_stage(**config):
     return Refine(g, motion, g.clone(), tv, tv, tiny_config(**{**base, **config}), seed=0)
 
 
-def test_e_steps_train_logits_not_motion_and_m_steps_the_reverse():
+def test_e_steps_train_gaussians_not_motion_and_m_steps_only_the_motion():
     stage = refine_stage()
-    g, motion = stage.gaussians, stage.motion
+    motion = stage.motion
     qr, qd = motion.qr.detach().clone(), motion.qd.detach().clone()
-    logits = g["logits"].detach().clone()
+    before = params_of(stage)
     terms = [stage.step(0), stage.step(1)]  # E
-    assert {"sam", "knn"} <= set(terms[0])
+    assert {"sam", "knn", "anchor"} <= set(terms[0])
     assert torch.equal(motion.qr.detach(), qr) and torch.equal(motion.qd.detach(), qd)
-    assert not torch.equal(g["logits"].detach(), logits)
-    logits = g["logits"].detach().clone()
+    after_e = params_of(stage)
+    for name in ("logits", "means", "colors"):
+        assert not torch.equal(after_e[name], before[name]), name
     terms = [stage.step(2), stage.step(3)]  # M
-    assert "sam" not in terms[0] and "knn" not in terms[0]
-    assert torch.equal(g["logits"].detach(), logits)
+    assert not {"sam", "knn", "anchor"} & set(terms[0])
+    after_m = params_of(stage)
+    for name in after_e:  # the Gaussians are held: the motion alone explains the target
+        assert torch.equal(after_m[name], after_e[name]), name
     assert not torch.equal(motion.qd.detach(), qd)
+    assert not torch.equal(motion.qr.detach(), qr)
 
 
 def test_joint_classification_makes_a_small_hinge_prismatic():
