@@ -3,6 +3,10 @@
 //! silhouette a few times, depth on), medians of `GEAR_BENCH_REPEATS` (default 7) runs after
 //! a warm-up that compiles the pipelines and fills the buffer pool.
 //!
+//! Also reports the mean process CPU time per call (all threads, from /proc/self/stat on
+//! Linux): on a machine shared with other jobs wall time swings with their load, CPU time
+//! much less.
+//!
 //! `cargo bench -p gear-core --bench raster [-- N@SIZE ...]`, e.g. `-- 20000@128`.
 
 use std::time::Instant;
@@ -92,13 +96,36 @@ fn camera(size: u32) -> Camera {
     }
 }
 
+/// User + system CPU time of this process in milliseconds, if the platform reports it.
+fn cpu_ms() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let mut fields = rest.split_whitespace().skip(11);
+    let utime: f64 = fields.next()?.parse().ok()?;
+    let stime: f64 = fields.next()?.parse().ok()?;
+    // Clock ticks are 1/100 s on Linux.
+    Some(10.0 * (utime + stime))
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }
 
-/// Median forward and backward milliseconds of `repeats` runs (after one warm-up run).
-fn time(n: usize, size: u32, repeats: usize) -> (f64, f64, u32) {
+/// Forward and backward times of one case.
+struct Timing {
+    /// Median wall milliseconds.
+    forward: f64,
+    backward: f64,
+    /// Mean process CPU milliseconds per call.
+    forward_cpu: Option<f64>,
+    backward_cpu: Option<f64>,
+    pairs: u32,
+}
+
+/// Times `repeats` runs (after one warm-up run).
+fn time(n: usize, size: u32, repeats: usize) -> Timing {
     let scene = Scene::ball(n, 0);
     let cam = camera(size);
     let options = RenderOptions {
@@ -117,20 +144,37 @@ fn time(n: usize, size: u32, repeats: usize) -> (f64, f64, u32) {
         depth: Some(&grad_depth),
     };
     let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
+    let (mut fwd_cpu, mut bwd_cpu) = (Some(0.0), Some(0.0));
     let mut pairs = 0;
     for run in 0..=repeats {
+        let cpu0 = cpu_ms();
         let start = Instant::now();
         let (_, state) = forward(&scene.view(), &cam, &options).expect("forward");
         let middle = Instant::now();
+        let cpu1 = cpu_ms();
         backward(&state, &grads, Accumulation::Auto).expect("backward");
         let end = Instant::now();
+        let cpu2 = cpu_ms();
         pairs = state.pairs;
         if run > 0 {
             fwd.push(1e3 * (middle - start).as_secs_f64());
             bwd.push(1e3 * (end - middle).as_secs_f64());
+            let spent = |a: Option<f64>, b: Option<f64>| Some(b? - a?);
+            fwd_cpu = fwd_cpu.and_then(|t| Some(t + spent(cpu0, cpu1)?));
+            bwd_cpu = bwd_cpu.and_then(|t| Some(t + spent(cpu1, cpu2)?));
         }
     }
-    (median(fwd), median(bwd), pairs)
+    Timing {
+        forward: median(fwd),
+        backward: median(bwd),
+        forward_cpu: fwd_cpu.map(|t| t / repeats as f64),
+        backward_cpu: bwd_cpu.map(|t| t / repeats as f64),
+        pairs,
+    }
+}
+
+fn show(ms: Option<f64>) -> String {
+    ms.map_or_else(|| "-".into(), |v| format!("{v:.1}"))
 }
 
 fn parse_case(arg: &str) -> Option<(usize, u32)> {
@@ -151,13 +195,20 @@ fn main() {
     if cases.is_empty() {
         cases = DEFAULT_CASES.to_vec();
     }
-    println!("median of {repeats} runs, C={CHANNELS}, depth on; times in ms");
+    println!("{repeats} runs, C={CHANNELS}, depth on; wall: median ms, cpu: mean ms per call");
     println!(
-        "{:>8} {:>9} {:>9} | {:>8} {:>8}",
-        "N", "image", "pairs", "forward", "backward"
+        "{:>8} {:>9} {:>9} | {:>8} {:>8} | {:>8} {:>8}",
+        "N", "image", "pairs", "fwd wall", "bwd wall", "fwd cpu", "bwd cpu"
     );
     for (n, size) in cases {
-        let (f, b, pairs) = time(n, size, repeats);
-        println!("{n:>8} {size:>4}x{size:<4} {pairs:>9} | {f:>8.1} {b:>8.1}");
+        let t = time(n, size, repeats);
+        println!(
+            "{n:>8} {size:>4}x{size:<4} {:>9} | {:>8.1} {:>8.1} | {:>8} {:>8}",
+            t.pairs,
+            t.forward,
+            t.backward,
+            show(t.forward_cpu),
+            show(t.backward_cpu)
+        );
     }
 }
