@@ -12,7 +12,7 @@ use crate::error::Result;
 use crate::gpu::{GpuContext, PooledBuffer};
 
 use super::frame::Frame;
-use super::kernels::{self, dispatch, groups, storage, uniform, PixelVariant, WG};
+use super::kernels::{self, dispatch, groups, storage, uniform, PixelVariant, TILE_GROUP, WG};
 use super::scan::encode_exclusive_scan;
 use super::sort::{bits_for, encode_index_sort, encode_radix_sort, Pairs};
 use super::types::{Camera, Gaussians, RenderOptions, RenderOutput};
@@ -224,7 +224,7 @@ pub(crate) fn forward_impl(
             (5, storage(&pixel_state)),
             (15, frame_buffer.as_entire_binding()),
         ],
-        frame.tiles(),
+        groups(frame.tiles(), TILE_GROUP),
     );
     ctx.queue.submit(Some(encoder.finish()));
     let mut values = ctx.read::<f32>(&image, image_len)?;

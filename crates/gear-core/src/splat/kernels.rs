@@ -20,6 +20,10 @@ use super::constants::{FAR, LOW_PASS, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, N
 /// Gaussians (256x256) against 16x16, and 4x4 gained nothing more (twice the pairs to sort).
 pub const GPU_TILE: u32 = 8;
 
+/// Tiles per workgroup of the forward blend (one thread per tile row): enough threads for a
+/// real GPU's wave; on the software adapter each tile's rows fill one SIMD vector.
+pub const TILE_GROUP: u32 = 8;
+
 /// Threads per workgroup of the scan's first level, and elements per thread.
 pub const SCAN_WG: u32 = 256;
 pub const SCAN_ITEMS: u32 = 4;
@@ -98,7 +102,9 @@ pub fn project_backward(variant: PixelVariant) -> ShaderSpec {
 }
 
 pub fn blend(variant: PixelVariant) -> ShaderSpec {
-    variant.apply(ShaderSpec::new("splat_blend", BLEND, "main"))
+    variant
+        .apply(ShaderSpec::new("splat_blend", BLEND, "main"))
+        .with("TILE_GROUP", format!("{TILE_GROUP}u"))
 }
 
 /// Blend backward accumulating with native f32 atomics, or with a compare-and-swap loop.
