@@ -46,14 +46,30 @@ const BLEND: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
     include_str!("../shaders/splat/blend.wgsl"),
 );
-const BLEND_BACKWARD_FLOAT: &str = concat!(
+/// Blend backward's accumulation: native f32 atomics or compare-and-swap, then how row sums
+/// are combined before the atomics (over a subgroup, or not at all).
+const BLEND_BACKWARD_FLOAT_SUBGROUP: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
     include_str!("../shaders/splat/atomic_float.wgsl"),
+    include_str!("../shaders/splat/tile_sum_subgroup.wgsl"),
     include_str!("../shaders/splat/blend_backward.wgsl"),
 );
-const BLEND_BACKWARD_CAS: &str = concat!(
+const BLEND_BACKWARD_FLOAT_ROWS: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/atomic_float.wgsl"),
+    include_str!("../shaders/splat/tile_sum_rows.wgsl"),
+    include_str!("../shaders/splat/blend_backward.wgsl"),
+);
+const BLEND_BACKWARD_CAS_SUBGROUP: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
     include_str!("../shaders/splat/atomic_cas.wgsl"),
+    include_str!("../shaders/splat/tile_sum_subgroup.wgsl"),
+    include_str!("../shaders/splat/blend_backward.wgsl"),
+);
+const BLEND_BACKWARD_CAS_ROWS: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/atomic_cas.wgsl"),
+    include_str!("../shaders/splat/tile_sum_rows.wgsl"),
     include_str!("../shaders/splat/blend_backward.wgsl"),
 );
 
@@ -107,12 +123,14 @@ pub fn blend(variant: PixelVariant) -> ShaderSpec {
         .with("TILE_GROUP", format!("{TILE_GROUP}u"))
 }
 
-/// Blend backward accumulating with native f32 atomics, or with a compare-and-swap loop.
-pub fn blend_backward(variant: PixelVariant, float_atomics: bool) -> ShaderSpec {
-    let (name, source) = if float_atomics {
-        ("splat_blend_backward_f32", BLEND_BACKWARD_FLOAT)
-    } else {
-        ("splat_blend_backward_cas", BLEND_BACKWARD_CAS)
+/// Blend backward accumulating with native f32 atomics or with a compare-and-swap loop, the
+/// rows of a tile summed over subgroups first (needs the SUBGROUP feature) or not.
+pub fn blend_backward(variant: PixelVariant, float_atomics: bool, subgroups: bool) -> ShaderSpec {
+    let (name, source) = match (float_atomics, subgroups) {
+        (true, true) => ("splat_blend_backward_f32_sg", BLEND_BACKWARD_FLOAT_SUBGROUP),
+        (true, false) => ("splat_blend_backward_f32", BLEND_BACKWARD_FLOAT_ROWS),
+        (false, true) => ("splat_blend_backward_cas_sg", BLEND_BACKWARD_CAS_SUBGROUP),
+        (false, false) => ("splat_blend_backward_cas", BLEND_BACKWARD_CAS_ROWS),
     };
     variant.apply(ShaderSpec::new(name, source, "main"))
 }

@@ -261,7 +261,7 @@ fn gradients(
     scene: &Scene,
     cam: &Camera,
     depth: bool,
-    accumulation: Accumulation,
+    path: BackwardPath,
 ) -> (GaussianGradients<f32>, GaussianGradients<f64>) {
     let opts = options(scene.channels, depth);
     let (_, state) = forward_impl(&scene.view(), cam, &opts, true).unwrap();
@@ -271,7 +271,7 @@ fn gradients(
         alpha: &img[1][..],
         depth: depth.then_some(&img[2][..]),
     };
-    let gpu = backward_impl(&state, &grads, accumulation, true).unwrap();
+    let gpu = backward_impl(&state, &grads, path.accumulation, path.subgroups, true).unwrap();
     let wide: Vec<Vec<f64>> = img
         .iter()
         .map(|v| v.iter().map(|&x| f64::from(x)).collect())
@@ -310,11 +310,32 @@ fn gradient_errors(gpu: &GaussianGradients<f32>, r: &GaussianGradients<f64>) -> 
     ]
 }
 
-/// Both accumulation paths: native f32 atomics (where the adapter has them) and CAS.
-fn accumulations() -> Vec<Accumulation> {
-    let mut paths = vec![Accumulation::CompareAndSwap];
-    if GpuContext::global().unwrap().info.features.float32_atomics {
-        paths.push(Accumulation::Auto);
+/// How blend-backward accumulates: native f32 atomics or CAS, with or without subgroup sums.
+#[derive(Debug, Clone, Copy)]
+struct BackwardPath {
+    accumulation: Accumulation,
+    subgroups: bool,
+}
+
+/// Every path the adapter can run: CAS always, native f32 atomics where the adapter has them,
+/// each with and (where the adapter has subgroups) without subgroup sums.
+fn backward_paths() -> Vec<BackwardPath> {
+    let features = GpuContext::global().unwrap().info.features;
+    let mut accumulations = vec![Accumulation::CompareAndSwap];
+    if features.float32_atomics {
+        accumulations.push(Accumulation::Auto);
+    }
+    let mut paths = Vec::new();
+    for accumulation in accumulations {
+        for subgroups in [false, true] {
+            if subgroups && !features.subgroups {
+                continue;
+            }
+            paths.push(BackwardPath {
+                accumulation,
+                subgroups,
+            });
+        }
     }
     paths
 }
@@ -330,16 +351,14 @@ fn gradients_match_reference() {
         let cam = camera(w, h);
         for channels in [3usize, 11] {
             for depth in [false, true] {
-                for accumulation in accumulations() {
+                for path in backward_paths() {
                     let scene = Scene::random(n, channels, seed + channels as u64);
-                    let (gpu, reference) = gradients(&scene, &cam, depth, accumulation);
+                    let (gpu, reference) = gradients(&scene, &cam, depth, path);
                     let errors = gradient_errors(&gpu, &reference);
-                    eprintln!(
-                        "gradients n={n} C={channels} depth={depth} {accumulation:?}: {errors:?}"
-                    );
+                    eprintln!("gradients n={n} C={channels} depth={depth} {path:?}: {errors:?}");
                     assert!(
                         errors.iter().all(|&e| e < 1e-3),
-                        "n={n} C={channels} depth={depth} {accumulation:?}: {errors:?}"
+                        "n={n} C={channels} depth={depth} {path:?}: {errors:?}"
                     );
                 }
             }
@@ -365,7 +384,7 @@ fn origin_camera(width: u32, height: u32) -> Camera {
     }
 }
 
-/// Forward and backward (both accumulation paths) finite everywhere; forward within 1e-4 of
+/// Forward and backward (every backward path) finite everywhere; forward within 1e-4 of
 /// the reference (up to rare discrete flips) when `compare` (not for scenes placed exactly on a cull boundary, where f32
 /// and f64 may decide differently); returns the gradients of the last path.
 fn check_finite(name: &str, scene: &Scene, cam: &Camera, compare: bool) -> GaussianGradients<f32> {
@@ -392,12 +411,9 @@ fn check_finite(name: &str, scene: &Scene, cam: &Camera, compare: bool) -> Gauss
         depth: Some(&img[2][..]),
     };
     let mut last = None;
-    for accumulation in accumulations() {
-        let g = backward_impl(&state, &grads, accumulation, true).unwrap();
-        assert!(
-            gradients_finite(&g),
-            "{name} {accumulation:?}: non-finite gradient"
-        );
+    for path in backward_paths() {
+        let g = backward_impl(&state, &grads, path.accumulation, path.subgroups, true).unwrap();
+        assert!(gradients_finite(&g), "{name} {path:?}: non-finite gradient");
         last = Some(g);
     }
     last.unwrap()

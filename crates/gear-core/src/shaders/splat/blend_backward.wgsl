@@ -4,8 +4,14 @@
 // consumed list prefix back to front, recovering each T_i = T_{i+1} / (1 - alpha_i) from the
 // stored final T, sums the row's gradient contributions per Gaussian, and adds them to the
 // per-Gaussian gradients (screen-space geometry, opacity, z, features) with add_geometry /
-// add_gradient (atomic_float.wgsl or atomic_cas.wgsl, chosen by the host). Summing rows
-// before the atomics made an earlier per-pixel version ~30% faster on lavapipe.
+// add_gradient (atomic_float.wgsl or atomic_cas.wgsl, chosen by the host).
+//
+// The atomics dominate (on the software adapter a compare-and-swap loop per lane: x86 has no
+// float atomic add), so they are made as rarely as possible: each row first sums its pixels'
+// contributions to a Gaussian, then tile_sum adds the rows up (tile_sum_subgroup.wgsl: over
+// the subgroup, one atomic per subgroup; tile_sum_rows.wgsl: no-op, one atomic per row). All
+// rows of a tile walk its list in step, from the longest consumed prefix, so that the
+// subgroup sums see one Gaussian at a time.
 // Specialised with: CHANNELS, WITH_DEPTH, TILE (must be 8), contract constants.
 
 @group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
@@ -43,6 +49,10 @@ struct Sums {
     features: array<f32, CHANNELS>,
     touched: bool,
 }
+
+// End of the longest consumed prefix among the tile's pixels.
+var<workgroup> tile_last: atomic<u32>;
+var<workgroup> tile_last_copy: u32;
 
 fn sum4(v: vec4<f32>) -> f32 {
     return dot(v, vec4<f32>(1.0));
@@ -134,12 +144,13 @@ fn main(
     @builtin(num_workgroups) nwg: vec3<u32>,
 ) {
     let tile = wg.x + wg.y * nwg.x;
-    let py = (tile / frame.tiles_x) * TILE + lid.x;
-    if tile >= frame.tiles_x * frame.tiles_y || py >= frame.height {
+    if tile >= frame.tiles_x * frame.tiles_y {
         return;
     }
+    let py = (tile / frame.tiles_x) * TILE + lid.x;
     let x0 = (tile % frame.tiles_x) * TILE;
-    let row_len = min(TILE, frame.width - x0);
+    // Rows below the image walk the list with the others, with no pixels.
+    let row_len = select(0u, min(TILE, frame.width - x0), py < frame.height);
     let row_start = py * frame.width + x0;
     let start = ranges[2u * tile];
     let cy = f32(py) + 0.5;
@@ -147,10 +158,14 @@ fn main(
 
     var left = load_quad(0u, row_len, row_start);
     var right = load_quad(4u, row_len, row_start);
-    let last = max(start, max(
-        max(max(left.consumed.x, left.consumed.y), max(left.consumed.z, left.consumed.w)),
-        max(max(right.consumed.x, right.consumed.y), max(right.consumed.z, right.consumed.w)),
-    ));
+    let consumed = max(left.consumed, right.consumed);
+    atomicMax(&tile_last, max(max(consumed.x, consumed.y), max(consumed.z, consumed.w)));
+    workgroupBarrier();
+    if lid.x == 0u {
+        tile_last_copy = max(start, atomicLoad(&tile_last));
+    }
+    let last = workgroupUniformLoad(&tile_last_copy);
+
     let base = feature_base();
     var own: array<f32, CHANNELS>;
     for (var k = last; k > start; k--) {
@@ -163,7 +178,14 @@ fn main(
         var sums = Sums();
         replay_quad(&left, xs, cy, head, conic, &own, k, &sums);
         replay_quad(&right, xs + 4.0, cy, head, conic, &own, k, &sums);
-        if sums.touched {
+        for (var c = 0u; c < CHANNELS; c++) {
+            sums.features[c] = tile_sum(sums.features[c]);
+        }
+        for (var q = 0u; q < 7u; q++) {
+            sums.geometry[q] = tile_sum(sums.geometry[q]);
+        }
+        let touched = tile_sum(select(0.0, 1.0, sums.touched)) > 0.0;
+        if touched && adds_tile_sum() {
             for (var c = 0u; c < CHANNELS; c++) {
                 add_gradient(base + g * CHANNELS + c, sums.features[c]);
             }
