@@ -6,12 +6,13 @@
 // per-Gaussian gradients (screen-space geometry, opacity, z, features) with add_geometry /
 // add_gradient (atomic_float.wgsl or atomic_cas.wgsl, chosen by the host).
 //
-// The atomics dominate (on the software adapter a compare-and-swap loop per lane: x86 has no
-// float atomic add), so they are made as rarely as possible: each row first sums its pixels'
-// contributions to a Gaussian, then tile_sum adds the rows up (tile_sum_subgroup.wgsl: over
-// the subgroup, one atomic per subgroup; tile_sum_rows.wgsl: no-op, one atomic per row). All
-// rows of a tile walk its list in step, from the longest consumed prefix, so that the
-// subgroup sums see one Gaussian at a time.
+// The atomics (on the software adapter a compare-and-swap loop per lane: x86 has no float
+// atomic add) and the loads of each Gaussian (a gather per lane there) dominate, so with
+// subgroup operations one invocation per subgroup does both for all of its rows
+// (tile_sum_subgroup.wgsl): it loads the Gaussian and broadcasts it, and adds the rows' sums
+// totalled over the subgroup. Without them every row does both itself (tile_sum_rows.wgsl).
+// Either way each row first sums its pixels' contributions, and all rows of a tile walk its
+// list in step, from the longest consumed prefix, so a subgroup sees one Gaussian at a time.
 // Specialised with: CHANNELS, WITH_DEPTH, TILE (must be 8), contract constants.
 
 @group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
@@ -167,17 +168,29 @@ fn main(
     let last = workgroupUniformLoad(&tile_last_copy);
 
     let base = feature_base();
+    let leader = leads_tile();
     var own: array<f32, CHANNELS>;
     for (var k = last; k > start; k--) {
-        let g = tile_values[k - 1u];
-        let head = projected[3u * g];
-        let conic = projected[3u * g + 1u].xyz;
+        var g = 0u;
+        var head = vec4<f32>(0.0);
+        var conic = vec4<f32>(0.0);
+        if leader {
+            g = tile_values[k - 1u];
+            head = projected[3u * g];
+            conic = projected[3u * g + 1u];
+            for (var c = 0u; c < CHANNELS; c++) {
+                own[c] = features[g * CHANNELS + c];
+            }
+        }
+        g = from_leader_u32(g);
+        head = from_leader_vec4(head);
+        conic = from_leader_vec4(conic);
         for (var c = 0u; c < CHANNELS; c++) {
-            own[c] = features[g * CHANNELS + c];
+            own[c] = from_leader_f32(own[c]);
         }
         var sums = Sums();
-        replay_quad(&left, xs, cy, head, conic, &own, k, &sums);
-        replay_quad(&right, xs + 4.0, cy, head, conic, &own, k, &sums);
+        replay_quad(&left, xs, cy, head, conic.xyz, &own, k, &sums);
+        replay_quad(&right, xs + 4.0, cy, head, conic.xyz, &own, k, &sums);
         for (var c = 0u; c < CHANNELS; c++) {
             sums.features[c] = tile_sum(sums.features[c]);
         }
@@ -185,7 +198,7 @@ fn main(
             sums.geometry[q] = tile_sum(sums.geometry[q]);
         }
         let touched = tile_sum(select(0.0, 1.0, sums.touched)) > 0.0;
-        if touched && adds_tile_sum() {
+        if touched && leader {
             for (var c = 0u; c < CHANNELS; c++) {
                 add_gradient(base + g * CHANNELS + c, sums.features[c]);
             }

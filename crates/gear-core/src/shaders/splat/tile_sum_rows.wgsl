@@ -1,10 +1,22 @@
-// Row sums of blend_backward.wgsl added atomically by every row itself (adapters without
-// subgroup operations).
+// How blend_backward.wgsl shares work between the rows of a tile without subgroup
+// operations: not at all; every row loads each Gaussian and makes its own atomic adds.
+
+fn leads_tile() -> bool {
+    return true;
+}
 
 fn tile_sum(v: f32) -> f32 {
     return v;
 }
 
-fn adds_tile_sum() -> bool {
-    return true;
+fn from_leader_u32(v: u32) -> u32 {
+    return v;
+}
+
+fn from_leader_f32(v: f32) -> f32 {
+    return v;
+}
+
+fn from_leader_vec4(v: vec4<f32>) -> vec4<f32> {
+    return v;
 }

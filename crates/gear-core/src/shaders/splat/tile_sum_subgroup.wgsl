@@ -1,12 +1,25 @@
-// Row sums of blend_backward.wgsl added up over the subgroup (a whole 8-row tile when the
-// subgroup holds at least 8 invocations, else part of it); one invocation per subgroup then
-// makes the atomic adds. Needs the SUBGROUP feature.
+// How blend_backward.wgsl shares work between the rows of a tile, with subgroup operations
+// (SUBGROUP feature): one invocation per subgroup (all eight rows when the subgroup holds at
+// least eight invocations, else part of them) loads each Gaussian and broadcasts it, and
+// makes the atomic adds of the row sums added up over the subgroup.
+
+// True for the first active invocation of the subgroup only (call in uniform control flow).
+fn leads_tile() -> bool {
+    return subgroupExclusiveAdd(1u) == 0u;
+}
 
 fn tile_sum(v: f32) -> f32 {
     return subgroupAdd(v);
 }
 
-// True for the first active invocation of the subgroup only.
-fn adds_tile_sum() -> bool {
-    return subgroupExclusiveAdd(1u) == 0u;
+fn from_leader_u32(v: u32) -> u32 {
+    return subgroupBroadcastFirst(v);
+}
+
+fn from_leader_f32(v: f32) -> f32 {
+    return subgroupBroadcastFirst(v);
+}
+
+fn from_leader_vec4(v: vec4<f32>) -> vec4<f32> {
+    return subgroupBroadcastFirst(v);
 }
