@@ -545,3 +545,34 @@ fn needles_match_reference() {
         }
     }
 }
+
+/// Large opaque Gaussians: every pixel stops blending after a few of its tile's hundreds of
+/// entries, so the forward's row early-out (all eight pixels stopped) and the backward's walk
+/// from the tile's longest consumed prefix (rows and pixels with shorter ones skip entries)
+/// both run; partial tiles at the right and bottom edges (90 x 70 is not a multiple of 8).
+#[test]
+fn saturated_scene_matches_reference() {
+    let mut scene = Scene::random_sized(600, 3, 41, -2.0);
+    for l in &mut scene.opacity_logits {
+        *l += 5.0;
+    }
+    let cam = camera(90, 70);
+    let opts = options(scene.channels, true);
+    let reference = reference::forward(&scene.view(), &cam, &opts).unwrap();
+    let saturated = reference.alpha.iter().filter(|&&a| a > 0.999).count();
+    assert!(
+        saturated * 10 >= reference.alpha.len() * 9,
+        "only {saturated} of {} pixels saturate: the scene does not test early stops",
+        reference.alpha.len()
+    );
+    let (image, depth_err) = forward_errors(&scene, &cam, true);
+    for (what, e) in [("image", image), ("depth", depth_err)] {
+        assert!(e.max <= 1e-4, "{what} error {e:?}");
+    }
+    for path in backward_paths() {
+        let (gpu, reference) = gradients(&scene, &cam, true, path);
+        let errors = gradient_errors(&gpu, &reference);
+        eprintln!("saturated gradients {path:?}: {errors:?}");
+        assert!(errors.iter().all(|&e| e < 1e-3), "{path:?}: {errors:?}");
+    }
+}
