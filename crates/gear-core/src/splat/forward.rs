@@ -12,7 +12,7 @@ use crate::error::Result;
 use crate::gpu::{GpuContext, PooledBuffer};
 
 use super::frame::Frame;
-use super::kernels::{self, dispatch, groups, storage, uniform, PixelVariant, TILE_GROUP, WG};
+use super::kernels::{self, dispatch, groups, storage, uniform, PixelVariant, WG};
 use super::scan::encode_exclusive_scan;
 use super::sort::{bits_for, encode_index_sort, encode_radix_sort, Pairs};
 use super::types::{Camera, Gaussians, RenderOptions, RenderOutput};
@@ -77,14 +77,16 @@ pub fn forward(
     camera: &Camera,
     options: &RenderOptions,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
-    forward_impl(gaussians, camera, options, false)
+    forward_impl(gaussians, camera, options, true, false)
 }
 
-/// [`forward`], optionally filling the outputs with NaN first (tests: unwritten pixels show).
+/// [`forward`], optionally without subgroup operations even where the adapter has them, and
+/// filling the outputs with NaN first (tests: both paths run, unwritten pixels show).
 pub(crate) fn forward_impl(
     gaussians: &Gaussians,
     camera: &Camera,
     options: &RenderOptions,
+    allow_subgroups: bool,
     poison: bool,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
     camera.validate()?;
@@ -211,10 +213,11 @@ pub(crate) fn forward_impl(
             groups(pairs, WG),
         );
     }
+    let subgroups = ctx.info.features.subgroups && allow_subgroups;
     dispatch(
         ctx,
         &mut encoder,
-        &kernels::blend(variant),
+        &kernels::blend(variant, subgroups),
         &[
             (0, storage(&projected)),
             (1, storage(&by_tile.values)),
@@ -224,7 +227,7 @@ pub(crate) fn forward_impl(
             (5, storage(&pixel_state)),
             (15, frame_buffer.as_entire_binding()),
         ],
-        groups(frame.tiles(), TILE_GROUP),
+        groups(frame.tiles(), kernels::blend_tile_group(subgroups)),
     );
     ctx.queue.submit(Some(encoder.finish()));
     let mut values = ctx.read::<f32>(&image, image_len)?;

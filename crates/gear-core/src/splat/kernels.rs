@@ -20,9 +20,19 @@ use super::constants::{FAR, LOW_PASS, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, N
 /// Gaussians (256x256) against 16x16, and 4x4 gained nothing more (twice the pairs to sort).
 pub const GPU_TILE: u32 = 8;
 
-/// Tiles per workgroup of the forward blend (one thread per tile row): enough threads for a
-/// real GPU's wave; on the software adapter each tile's rows fill one SIMD vector.
-pub const TILE_GROUP: u32 = 8;
+/// Tiles per workgroup of the forward blend without subgroups (one thread per tile row):
+/// enough threads for a real GPU's wave; on the software adapter each tile's rows fill one
+/// SIMD vector. With subgroups a workgroup is one tile, so no subgroup spans two.
+const TILE_GROUP: u32 = 8;
+
+/// Tiles per workgroup of [`blend`].
+pub fn blend_tile_group(subgroups: bool) -> u32 {
+    if subgroups {
+        1
+    } else {
+        TILE_GROUP
+    }
+}
 
 /// Threads per workgroup of the scan's first level, and elements per thread.
 pub const SCAN_WG: u32 = 256;
@@ -42,8 +52,15 @@ const PROJECT_BACKWARD: &str = concat!(
     include_str!("../shaders/splat/project_common.wgsl"),
     include_str!("../shaders/splat/project_backward.wgsl"),
 );
-const BLEND: &str = concat!(
+/// Blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or not.
+const BLEND_SUBGROUP: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/tile_share_subgroup.wgsl"),
+    include_str!("../shaders/splat/blend.wgsl"),
+);
+const BLEND_ROWS: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/tile_share_rows.wgsl"),
     include_str!("../shaders/splat/blend.wgsl"),
 );
 /// Blend backward's accumulation: native f32 atomics or compare-and-swap, then how row sums
@@ -51,25 +68,25 @@ const BLEND: &str = concat!(
 const BLEND_BACKWARD_FLOAT_SUBGROUP: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
     include_str!("../shaders/splat/atomic_float.wgsl"),
-    include_str!("../shaders/splat/tile_sum_subgroup.wgsl"),
+    include_str!("../shaders/splat/tile_share_subgroup.wgsl"),
     include_str!("../shaders/splat/blend_backward.wgsl"),
 );
 const BLEND_BACKWARD_FLOAT_ROWS: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
     include_str!("../shaders/splat/atomic_float.wgsl"),
-    include_str!("../shaders/splat/tile_sum_rows.wgsl"),
+    include_str!("../shaders/splat/tile_share_rows.wgsl"),
     include_str!("../shaders/splat/blend_backward.wgsl"),
 );
 const BLEND_BACKWARD_CAS_SUBGROUP: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
     include_str!("../shaders/splat/atomic_cas.wgsl"),
-    include_str!("../shaders/splat/tile_sum_subgroup.wgsl"),
+    include_str!("../shaders/splat/tile_share_subgroup.wgsl"),
     include_str!("../shaders/splat/blend_backward.wgsl"),
 );
 const BLEND_BACKWARD_CAS_ROWS: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
     include_str!("../shaders/splat/atomic_cas.wgsl"),
-    include_str!("../shaders/splat/tile_sum_rows.wgsl"),
+    include_str!("../shaders/splat/tile_share_rows.wgsl"),
     include_str!("../shaders/splat/blend_backward.wgsl"),
 );
 
@@ -117,10 +134,17 @@ pub fn project_backward(variant: PixelVariant) -> ShaderSpec {
     ))
 }
 
-pub fn blend(variant: PixelVariant) -> ShaderSpec {
+/// The forward blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or
+/// not; dispatched over `blend_tile_group(subgroups)` tiles per workgroup.
+pub fn blend(variant: PixelVariant, subgroups: bool) -> ShaderSpec {
+    let (name, source) = if subgroups {
+        ("splat_blend_sg", BLEND_SUBGROUP)
+    } else {
+        ("splat_blend", BLEND_ROWS)
+    };
     variant
-        .apply(ShaderSpec::new("splat_blend", BLEND, "main"))
-        .with("TILE_GROUP", format!("{TILE_GROUP}u"))
+        .apply(ShaderSpec::new(name, source, "main"))
+        .with("TILE_GROUP", format!("{}u", blend_tile_group(subgroups)))
 }
 
 /// Blend backward accumulating with native f32 atomics or with a compare-and-swap loop, the

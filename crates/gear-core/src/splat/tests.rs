@@ -206,18 +206,33 @@ impl ImageError {
     }
 }
 
-/// GPU forward vs reference: errors of the feature and alpha images, and of depth.
+/// Whether the kernels run without subgroup operations, and with them where the adapter has
+/// them.
+fn subgroup_choices() -> Vec<bool> {
+    if GpuContext::global().unwrap().info.features.subgroups {
+        vec![false, true]
+    } else {
+        vec![false]
+    }
+}
+
+/// GPU forward (every blend path) vs reference: worst errors of the feature and alpha images,
+/// and of depth.
 fn forward_errors(scene: &Scene, cam: &Camera, depth: bool) -> (ImageError, ImageError) {
     let opts = options(scene.channels, depth);
-    let (gpu, _) = forward_impl(&scene.view(), cam, &opts, true).unwrap();
     let reference = reference::forward(&scene.view(), cam, &opts).unwrap();
-    let image = ImageError::of(&gpu.features, &reference.features)
-        .worst(ImageError::of(&gpu.alpha, &reference.alpha));
-    let depth_err = match (&gpu.depth, &reference.depth) {
-        (Some(g), Some(r)) => ImageError::of(g, r),
-        (None, None) => ImageError::default(),
-        _ => panic!("depth present in one output only"),
-    };
+    let (mut image, mut depth_err) = (ImageError::default(), ImageError::default());
+    for subgroups in subgroup_choices() {
+        let (gpu, _) = forward_impl(&scene.view(), cam, &opts, subgroups, true).unwrap();
+        image = image
+            .worst(ImageError::of(&gpu.features, &reference.features))
+            .worst(ImageError::of(&gpu.alpha, &reference.alpha));
+        depth_err = depth_err.worst(match (&gpu.depth, &reference.depth) {
+            (Some(g), Some(r)) => ImageError::of(g, r),
+            (None, None) => ImageError::default(),
+            _ => panic!("depth present in one output only"),
+        });
+    }
     (image, depth_err)
 }
 
@@ -264,7 +279,7 @@ fn gradients(
     path: BackwardPath,
 ) -> (GaussianGradients<f32>, GaussianGradients<f64>) {
     let opts = options(scene.channels, depth);
-    let (_, state) = forward_impl(&scene.view(), cam, &opts, true).unwrap();
+    let (_, state) = forward_impl(&scene.view(), cam, &opts, path.subgroups, true).unwrap();
     let img = random_image_grads(cam.pixels(), scene.channels, 99);
     let grads = OutputGradients {
         features: &img[0][..],
@@ -310,7 +325,8 @@ fn gradient_errors(gpu: &GaussianGradients<f32>, r: &GaussianGradients<f64>) -> 
     ]
 }
 
-/// How blend-backward accumulates: native f32 atomics or CAS, with or without subgroup sums.
+/// How the kernels run: blend-backward's native f32 atomics or CAS, and both blends with or
+/// without subgroup operations.
 #[derive(Debug, Clone, Copy)]
 struct BackwardPath {
     accumulation: Accumulation,
@@ -320,17 +336,13 @@ struct BackwardPath {
 /// Every path the adapter can run: CAS always, native f32 atomics where the adapter has them,
 /// each with and (where the adapter has subgroups) without subgroup sums.
 fn backward_paths() -> Vec<BackwardPath> {
-    let features = GpuContext::global().unwrap().info.features;
     let mut accumulations = vec![Accumulation::CompareAndSwap];
-    if features.float32_atomics {
+    if GpuContext::global().unwrap().info.features.float32_atomics {
         accumulations.push(Accumulation::Auto);
     }
     let mut paths = Vec::new();
     for accumulation in accumulations {
-        for subgroups in [false, true] {
-            if subgroups && !features.subgroups {
-                continue;
-            }
+        for subgroups in subgroup_choices() {
             paths.push(BackwardPath {
                 accumulation,
                 subgroups,
@@ -384,26 +396,12 @@ fn origin_camera(width: u32, height: u32) -> Camera {
     }
 }
 
-/// Forward and backward (every backward path) finite everywhere; forward within 1e-4 of
-/// the reference (up to rare discrete flips) when `compare` (not for scenes placed exactly on a cull boundary, where f32
-/// and f64 may decide differently); returns the gradients of the last path.
+/// Forward and backward (every path) finite everywhere; forward within 1e-4 of the reference
+/// (up to rare discrete flips) when `compare` (not for scenes placed exactly on a cull
+/// boundary, where f32 and f64 may decide differently); returns the gradients of the last path.
 fn check_finite(name: &str, scene: &Scene, cam: &Camera, compare: bool) -> GaussianGradients<f32> {
     let opts = options(scene.channels, true);
-    let (out, state) = forward_impl(&scene.view(), cam, &opts, true).unwrap();
-    let depth = out.depth.as_ref().unwrap();
-    assert!(
-        all_finite(&out.features) && all_finite(&out.alpha) && all_finite(depth),
-        "{name}: non-finite forward output"
-    );
-    if compare {
-        let reference = reference::forward(&scene.view(), cam, &opts).unwrap();
-        let err = ImageError::of(&out.features, &reference.features)
-            .worst(ImageError::of(&out.alpha, &reference.alpha));
-        assert!(
-            err.within_flips(),
-            "{name}: forward differs from reference {err:?}"
-        );
-    }
+    let reference = compare.then(|| reference::forward(&scene.view(), cam, &opts).unwrap());
     let img = random_image_grads(cam.pixels(), scene.channels, 7);
     let grads = OutputGradients {
         features: &img[0][..],
@@ -412,6 +410,20 @@ fn check_finite(name: &str, scene: &Scene, cam: &Camera, compare: bool) -> Gauss
     };
     let mut last = None;
     for path in backward_paths() {
+        let (out, state) = forward_impl(&scene.view(), cam, &opts, path.subgroups, true).unwrap();
+        let depth = out.depth.as_ref().unwrap();
+        assert!(
+            all_finite(&out.features) && all_finite(&out.alpha) && all_finite(depth),
+            "{name} {path:?}: non-finite forward output"
+        );
+        if let Some(reference) = &reference {
+            let err = ImageError::of(&out.features, &reference.features)
+                .worst(ImageError::of(&out.alpha, &reference.alpha));
+            assert!(
+                err.within_flips(),
+                "{name} {path:?}: forward differs from reference {err:?}"
+            );
+        }
         let g = backward_impl(&state, &grads, path.accumulation, path.subgroups, true).unwrap();
         assert!(gradients_finite(&g), "{name} {path:?}: non-finite gradient");
         last = Some(g);

@@ -5,6 +5,11 @@
 // list prefix it consumed. Specialised with: CHANNELS, WITH_DEPTH, TILE (must be 8),
 // TILE_GROUP, contract constants.
 //
+// With subgroup operations (tile_share_subgroup.wgsl, TILE_GROUP = 1 so that a subgroup never
+// spans two tiles) one invocation loads each Gaussian and broadcasts it to the other rows,
+// and the rows stop walking the list together once all their pixels have stopped; without
+// them (tile_share_rows.wgsl) every row loads for itself and stops on its own.
+//
 // Why rows of vec4s: on the software adapter every load from memory inside a loop is a
 // per-lane gather, and with one thread per pixel those gathers took most of the time; here a
 // Gaussian is loaded once per eight pixels. The per-pixel state lives in vectors, not arrays
@@ -97,12 +102,13 @@ fn main(
     @builtin(num_workgroups) nwg: vec3<u32>,
 ) {
     let tile = (wg.x + wg.y * nwg.x) * TILE_GROUP + lid.x / TILE;
-    let py = (tile / frame.tiles_x) * TILE + lid.x % TILE;
-    if tile >= frame.tiles_x * frame.tiles_y || py >= frame.height {
+    if tile >= frame.tiles_x * frame.tiles_y {
         return;
     }
+    let py = (tile / frame.tiles_x) * TILE + lid.x % TILE;
     let x0 = (tile % frame.tiles_x) * TILE;
-    let row_len = min(TILE, frame.width - x0);
+    // Rows below the image walk the list with the others, with no pixels.
+    let row_len = select(0u, min(TILE, frame.width - x0), py < frame.height);
     let cy = f32(py) + 0.5;
     let xs = f32(x0) + vec4<f32>(0.5, 1.5, 2.5, 3.5);
     let start = ranges[2u * tile];
@@ -111,16 +117,29 @@ fn main(
     var left = new_quad(0u, row_len, start);
     var right = new_quad(4u, row_len, start);
     var live = row_len;
+    let leader = leads_tile();
     var own: array<f32, CHANNELS>;
-    for (var k = start; k < end && live > 0u; k++) {
-        let g = tile_values[k];
-        let head = projected[3u * g];
-        let conic = projected[3u * g + 1u].xyz;
-        for (var c = 0u; c < CHANNELS; c++) {
-            own[c] = features[g * CHANNELS + c];
+    for (var k = start; k < end; k++) {
+        if tile_all(live == 0u) {
+            break;
         }
-        live -= blend_quad(&left, xs, cy, head, conic, &own, k);
-        live -= blend_quad(&right, xs + 4.0, cy, head, conic, &own, k);
+        var head = vec4<f32>(0.0);
+        var conic = vec4<f32>(0.0);
+        if leader {
+            let g = tile_values[k];
+            head = projected[3u * g];
+            conic = projected[3u * g + 1u];
+            for (var c = 0u; c < CHANNELS; c++) {
+                own[c] = features[g * CHANNELS + c];
+            }
+        }
+        head = from_leader_vec4(head);
+        conic = from_leader_vec4(conic);
+        for (var c = 0u; c < CHANNELS; c++) {
+            own[c] = from_leader_f32(own[c]);
+        }
+        live -= blend_quad(&left, xs, cy, head, conic.xyz, &own, k);
+        live -= blend_quad(&right, xs + 4.0, cy, head, conic.xyz, &own, k);
     }
     let row_start = py * frame.width + x0;
     store_quad(&left, 0u, row_len, row_start);

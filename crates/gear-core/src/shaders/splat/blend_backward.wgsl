@@ -9,8 +9,8 @@
 // The atomics (on the software adapter a compare-and-swap loop per lane: x86 has no float
 // atomic add) and the loads of each Gaussian (a gather per lane there) dominate, so with
 // subgroup operations one invocation per subgroup does both for all of its rows
-// (tile_sum_subgroup.wgsl): it loads the Gaussian and broadcasts it, and adds the rows' sums
-// totalled over the subgroup. Without them every row does both itself (tile_sum_rows.wgsl).
+// (tile_share_subgroup.wgsl): it loads the Gaussian and broadcasts it, and adds the rows' sums
+// totalled over the subgroup. Without them every row does both itself (tile_share_rows.wgsl).
 // Either way each row first sums its pixels' contributions, and all rows of a tile walk its
 // list in step, from the longest consumed prefix, so a subgroup sees one Gaussian at a time.
 // Specialised with: CHANNELS, WITH_DEPTH, TILE (must be 8), contract constants.

@@ -1,8 +1,13 @@
-// How blend_backward.wgsl shares work between the rows of a tile without subgroup
-// operations: not at all; every row loads each Gaussian and makes its own atomic adds.
+// How blend.wgsl and blend_backward.wgsl share work between the rows of a tile without
+// subgroup operations: not at all; every row loads each Gaussian, stops on its own, and
+// makes its own atomic adds.
 
 fn leads_tile() -> bool {
     return true;
+}
+
+fn tile_all(v: bool) -> bool {
+    return v;
 }
 
 fn tile_sum(v: f32) -> f32 {
