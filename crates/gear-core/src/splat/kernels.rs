@@ -180,22 +180,23 @@ pub fn scan_add() -> ShaderSpec {
 }
 
 pub fn radix_count(bits: u32) -> ShaderSpec {
-    ShaderSpec::new(
-        "splat_radix_count",
+    const SOURCE: &str = concat!(
+        include_str!("../shaders/splat/radix_common.wgsl"),
         include_str!("../shaders/splat/radix_count.wgsl"),
-        "main",
-    )
-    .with("BITS", format!("{bits}u"))
+    );
+    ShaderSpec::new("splat_radix_count", SOURCE, "main").with("BITS", format!("{bits}u"))
 }
 
 /// The scatter step; `identity_values` makes the payload each element's input position
 /// (no values buffer is bound then).
 pub fn radix_scatter(bits: u32, identity_values: bool) -> ShaderSpec {
     const FROM_BUFFER: &str = concat!(
+        include_str!("../shaders/splat/radix_common.wgsl"),
         include_str!("../shaders/splat/radix_values_buffer.wgsl"),
         include_str!("../shaders/splat/radix_scatter.wgsl"),
     );
     const IDENTITY: &str = concat!(
+        include_str!("../shaders/splat/radix_common.wgsl"),
         include_str!("../shaders/splat/radix_values_identity.wgsl"),
         include_str!("../shaders/splat/radix_scatter.wgsl"),
     );
