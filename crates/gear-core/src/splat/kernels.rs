@@ -18,7 +18,12 @@ use super::constants::{FAR, LOW_PASS, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, N
 /// adapter, where every pixel of a tile evaluates every Gaussian of the tile's list (divergent
 /// branches are masked, not skipped), 8x8 tiles halved forward and backward time at 100k
 /// Gaussians (256x256) against 16x16, and 4x4 gained nothing more (twice the pairs to sort).
+/// The blend kernels give each thread one tile row as two vec4 quads, so it must be 8.
 pub const GPU_TILE: u32 = 8;
+const _: () = assert!(
+    GPU_TILE == 8,
+    "blend.wgsl and blend_backward.wgsl blend rows of 8"
+);
 
 /// Tiles per workgroup of the forward blend without subgroups (one thread per tile row):
 /// enough threads for a real GPU's wave; on the software adapter each tile's rows fill one
