@@ -14,10 +14,9 @@
 // per-lane gather, and with one thread per pixel those gathers took most of the time; here a
 // Gaussian is loaded once per eight pixels. The per-pixel state lives in vectors, not arrays
 // indexed by pixel (which would be gathers again), and per-pixel decisions are selects.
-// The pixel box of project.wgsl is not tested: outside it alpha is below 1/255 by a margin,
-// so the alpha test skips the same pixels.
+// No per-pixel bounding box is tested: it would only skip pixels the alpha test skips.
 
-// Per Gaussian: (u, v, z, opacity), (conic a, b, c, level), pixel box (see project.wgsl).
+// Per Gaussian: (u, v, z, opacity), (conic a, b, c, level) (see project.wgsl).
 @group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
 @group(0) @binding(1) var<storage, read> tile_values: array<u32>;
 @group(0) @binding(2) var<storage, read> ranges: array<u32>;
@@ -127,8 +126,8 @@ fn main(
         var conic = vec4<f32>(0.0);
         if leader {
             let g = tile_values[k];
-            head = projected[3u * g];
-            conic = projected[3u * g + 1u];
+            head = projected[2u * g];
+            conic = projected[2u * g + 1u];
             for (var c = 0u; c < CHANNELS; c++) {
                 own[c] = features[g * CHANNELS + c];
             }

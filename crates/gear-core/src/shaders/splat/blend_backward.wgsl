@@ -176,8 +176,8 @@ fn main(
         var conic = vec4<f32>(0.0);
         if leader {
             g = tile_values[k - 1u];
-            head = projected[3u * g];
-            conic = projected[3u * g + 1u];
+            head = projected[2u * g];
+            conic = projected[2u * g + 1u];
             for (var c = 0u; c < CHANNELS; c++) {
                 own[c] = features[g * CHANNELS + c];
             }
