@@ -57,7 +57,7 @@ fn blend_quad(
 ) -> u32 {
     let dx = xs - head.x;
     let dy = cy - head.y;
-    let power = -0.5 * (conic.x * dx * dx + conic.z * dy * dy) - conic.y * dx * dy;
+    let power = gaussian_power(dx, dy, conic);
     let alpha = min(vec4<f32>(MAX_ALPHA), head.w * exp(power));
     let t = (*q).transmittance;
     let next = t * (1.0 - alpha);
@@ -104,18 +104,14 @@ fn main(
     if tile >= frame.tiles_x * frame.tiles_y {
         return;
     }
-    let py = (tile / frame.tiles_x) * TILE + lid.x % TILE;
-    let x0 = (tile % frame.tiles_x) * TILE;
     // Rows below the image walk the list with the others, with no pixels.
-    let row_len = select(0u, min(TILE, frame.width - x0), py < frame.height);
-    let cy = f32(py) + 0.5;
-    let xs = f32(x0) + vec4<f32>(0.5, 1.5, 2.5, 3.5);
+    let row = tile_row(tile, lid.x % TILE);
     let start = ranges[2u * tile];
     let end = ranges[2u * tile + 1u];
 
-    var left = new_quad(0u, row_len, start);
-    var right = new_quad(4u, row_len, start);
-    var live = row_len;
+    var left = new_quad(0u, row.len, start);
+    var right = new_quad(4u, row.len, start);
+    var live = row.len;
     let leader = leads_tile();
     var own: array<f32, CHANNELS>;
     for (var k = start; k < end; k++) {
@@ -137,10 +133,9 @@ fn main(
         for (var c = 0u; c < CHANNELS; c++) {
             own[c] = from_leader_f32(own[c]);
         }
-        live -= blend_quad(&left, xs, cy, head, conic.xyz, &own, k);
-        live -= blend_quad(&right, xs + 4.0, cy, head, conic.xyz, &own, k);
+        live -= blend_quad(&left, row.xs, row.cy, head, conic.xyz, &own, k);
+        live -= blend_quad(&right, row.xs + 4.0, row.cy, head, conic.xyz, &own, k);
     }
-    let row_start = py * frame.width + x0;
-    store_quad(&left, 0u, row_len, row_start);
-    store_quad(&right, 4u, row_len, row_start);
+    store_quad(&left, 0u, row.len, row.start);
+    store_quad(&right, 4u, row.len, row.start);
 }

@@ -96,7 +96,7 @@ fn replay_quad(
 ) {
     let dx = xs - head.x;
     let dy = cy - head.y;
-    let power = -0.5 * (conic.x * dx * dx + conic.z * dy * dy) - conic.y * dx * dy;
+    let power = gaussian_power(dx, dy, conic);
     let gauss = exp(power);
     let raw = head.w * gauss;
     let alpha = min(vec4<f32>(MAX_ALPHA), raw);
@@ -148,17 +148,12 @@ fn main(
     if tile >= frame.tiles_x * frame.tiles_y {
         return;
     }
-    let py = (tile / frame.tiles_x) * TILE + lid.x;
-    let x0 = (tile % frame.tiles_x) * TILE;
     // Rows below the image walk the list with the others, with no pixels.
-    let row_len = select(0u, min(TILE, frame.width - x0), py < frame.height);
-    let row_start = py * frame.width + x0;
+    let row = tile_row(tile, lid.x);
     let start = ranges[2u * tile];
-    let cy = f32(py) + 0.5;
-    let xs = f32(x0) + vec4<f32>(0.5, 1.5, 2.5, 3.5);
 
-    var left = load_quad(0u, row_len, row_start);
-    var right = load_quad(4u, row_len, row_start);
+    var left = load_quad(0u, row.len, row.start);
+    var right = load_quad(4u, row.len, row.start);
     let consumed = max(left.consumed, right.consumed);
     atomicMax(&tile_last, max(max(consumed.x, consumed.y), max(consumed.z, consumed.w)));
     workgroupBarrier();
@@ -189,8 +184,8 @@ fn main(
             own[c] = from_leader_f32(own[c]);
         }
         var sums = Sums();
-        replay_quad(&left, xs, cy, head, conic.xyz, &own, k, &sums);
-        replay_quad(&right, xs + 4.0, cy, head, conic.xyz, &own, k, &sums);
+        replay_quad(&left, row.xs, row.cy, head, conic.xyz, &own, k, &sums);
+        replay_quad(&right, row.xs + 4.0, row.cy, head, conic.xyz, &own, k, &sums);
         for (var c = 0u; c < CHANNELS; c++) {
             sums.features[c] = tile_sum(sums.features[c]);
         }
