@@ -12,7 +12,8 @@ use super::pipelines::PipelineCache;
 pub struct OptionalFeatures {
     /// `atomic<f32>` with `atomicAdd` in storage buffers (gradient accumulation without CAS).
     pub float32_atomics: bool,
-    /// Subgroup operations (blend-backward sums a tile's rows with them before its atomics).
+    /// Subgroup operations (the blend kernels share each Gaussian's loads, and blend-backward
+    /// its atomics, between the rows of a tile with them).
     pub subgroups: bool,
     /// GPU timestamps (reported; benchmarks time on the host).
     pub timestamps: bool,

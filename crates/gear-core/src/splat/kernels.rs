@@ -68,8 +68,8 @@ const BLEND_ROWS: &str = concat!(
     include_str!("../shaders/splat/tile_share_rows.wgsl"),
     include_str!("../shaders/splat/blend.wgsl"),
 );
-/// Blend backward's accumulation: native f32 atomics or compare-and-swap, then how row sums
-/// are combined before the atomics (over a subgroup, or not at all).
+/// Blend backward's accumulation (native f32 atomics or compare-and-swap), then how its rows
+/// share loads and atomics (over a subgroup, or not at all).
 const BLEND_BACKWARD_FLOAT_SUBGROUP: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
     include_str!("../shaders/splat/atomic_float.wgsl"),
