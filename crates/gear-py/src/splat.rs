@@ -193,6 +193,32 @@ type ForwardResult<'py> = (
     RasterState,
 );
 
+/// What both forward bindings do around their renderer: borrow the checked arrays as
+/// Gaussians, run `render` (GIL released; it also gets the flat arrays), and return its images
+/// as numpy arrays with a `RasterState` around the state it made.
+fn forward_result<'py, T: Element + Send>(
+    py: Python<'py>,
+    args: &ForwardArgs<'py>,
+    force_cas: bool,
+    render: impl FnOnce(Gaussians<'_>, &[&[f32]; 5]) -> gear_core::Result<(RenderOutput<T>, StateKind)>
+        + Send,
+) -> PyResult<ForwardResult<'py>> {
+    let slices = args.slices()?;
+    let channels = args.channels;
+    let (out, kind) = guarded(py, || render(gaussians(&slices, channels)?, &slices))?;
+    let (width, height) = (args.camera.width, args.camera.height);
+    let (f, a, d) = images(py, out, width, height, channels)?;
+    let state = RasterState {
+        kind,
+        width,
+        height,
+        channels,
+        depth: args.options.depth,
+        force_cas,
+    };
+    Ok((f, a, d, state))
+}
+
 /// Renders on the GPU. `force_cas` makes the later backward accumulate with the
 /// compare-and-swap loop even where float32 atomics exist (to test that path).
 #[pyfunction]
@@ -226,21 +252,11 @@ fn rasterize_forward<'py>(
         background,
         depth,
     )?;
-    let slices = args.slices()?;
-    let (camera, options, channels) = (&args.camera, &args.options, args.channels);
-    let (out, state) = guarded(py, || {
-        splat::forward(&gaussians(&slices, channels)?, camera, options)
-    })?;
-    let (f, a, d) = images(py, out, width, height, channels)?;
-    let state = RasterState {
-        kind: StateKind::Gpu(Box::new(state)),
-        width,
-        height,
-        channels,
-        depth,
-        force_cas,
-    };
-    Ok((f, a, d, state))
+    let (camera, options) = (&args.camera, &args.options);
+    forward_result(py, &args, force_cas, |gaussians, _| {
+        let (out, state) = splat::forward(&gaussians, camera, options)?;
+        Ok((out, StateKind::Gpu(Box::new(state))))
+    })
 }
 
 /// Renders with the f64 CPU reference (outputs float64); same arguments as
@@ -276,26 +292,17 @@ fn reference_forward<'py>(
         background,
         depth,
     )?;
-    let slices = args.slices()?;
     let (camera, options, channels) = (&args.camera, &args.options, args.channels);
-    let out = guarded(py, || {
-        reference::forward(&gaussians(&slices, channels)?, camera, options)
-    })?;
-    let (f, a, d) = images(py, out, width, height, channels)?;
-    let state = RasterState {
-        kind: StateKind::Reference(Box::new(ReferenceInputs {
+    forward_result(py, &args, force_cas, |gaussians, slices| {
+        let out = reference::forward(&gaussians, camera, options)?;
+        let inputs = ReferenceInputs {
             arrays: slices.map(<[f32]>::to_vec),
             channels,
-            camera: args.camera,
-            options: args.options.clone(),
-        })),
-        width,
-        height,
-        channels,
-        depth,
-        force_cas,
-    };
-    Ok((f, a, d, state))
+            camera: *camera,
+            options: options.clone(),
+        };
+        Ok((out, StateKind::Reference(Box::new(inputs))))
+    })
 }
 
 /// Image gradients as checked numpy views of element type `T`.

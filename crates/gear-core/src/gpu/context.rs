@@ -12,7 +12,8 @@ use super::pipelines::PipelineCache;
 pub struct OptionalFeatures {
     /// `atomic<f32>` with `atomicAdd` in storage buffers (gradient accumulation without CAS).
     pub float32_atomics: bool,
-    /// Subgroup operations (reported, not required by any kernel).
+    /// Subgroup operations (the blend kernels share each Gaussian's loads, and blend-backward
+    /// its atomics, between the rows of a tile with them).
     pub subgroups: bool,
     /// GPU timestamps (reported; benchmarks time on the host).
     pub timestamps: bool,
@@ -67,6 +68,7 @@ impl GpuContext {
         let mut required = wgpu::Features::empty();
         for optional in [
             wgpu::Features::SHADER_FLOAT32_ATOMIC,
+            wgpu::Features::SUBGROUP,
             wgpu::Features::TIMESTAMP_QUERY,
         ] {
             if available.contains(optional) {
@@ -93,7 +95,7 @@ impl GpuContext {
                 .to_string(),
             features: OptionalFeatures {
                 float32_atomics: required.contains(wgpu::Features::SHADER_FLOAT32_ATOMIC),
-                subgroups: available.contains(wgpu::Features::SUBGROUP),
+                subgroups: required.contains(wgpu::Features::SUBGROUP),
                 timestamps: required.contains(wgpu::Features::TIMESTAMP_QUERY),
             },
             max_storage_binding_bytes: limits.max_storage_buffer_binding_size,

@@ -30,14 +30,16 @@ pub fn backward(
     grads: &OutputGradients<f32>,
     accumulation: Accumulation,
 ) -> Result<GaussianGradients<f32>> {
-    backward_impl(state, grads, accumulation, false)
+    backward_impl(state, grads, accumulation, true, false)
 }
 
-/// [`backward`], optionally filling the outputs with NaN first (tests: unwritten values show).
+/// [`backward`], optionally without subgroup operations even where the adapter has them, and
+/// filling the outputs with NaN first (tests: both paths run, unwritten values show).
 pub(crate) fn backward_impl(
     state: &ForwardState,
     grads: &OutputGradients<f32>,
     accumulation: Accumulation,
+    allow_subgroups: bool,
     poison: bool,
 ) -> Result<GaussianGradients<f32>> {
     let pixels = state.frame.pixels();
@@ -75,6 +77,7 @@ pub(crate) fn backward_impl(
         ctx.fill(&gradients, f32::NAN);
     }
     let float_atomics = ctx.info.features.float32_atomics && accumulation == Accumulation::Auto;
+    let subgroups = ctx.info.features.subgroups && allow_subgroups;
 
     let mut encoder = ctx.device.create_command_encoder(&Default::default());
     encoder.clear_buffer(&geometry.buffer, 0, Some(geometry.size));
@@ -89,7 +92,7 @@ pub(crate) fn backward_impl(
     dispatch(
         ctx,
         &mut encoder,
-        &kernels::blend_backward(state.variant, float_atomics),
+        &kernels::blend_backward(state.variant, float_atomics, subgroups),
         &[
             (0, storage(&state.projected)),
             (1, storage(&state.tile_values)),

@@ -77,14 +77,16 @@ pub fn forward(
     camera: &Camera,
     options: &RenderOptions,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
-    forward_impl(gaussians, camera, options, false)
+    forward_impl(gaussians, camera, options, true, false)
 }
 
-/// [`forward`], optionally filling the outputs with NaN first (tests: unwritten pixels show).
+/// [`forward`], optionally without subgroup operations even where the adapter has them, and
+/// filling the outputs with NaN first (tests: both paths run, unwritten pixels show).
 pub(crate) fn forward_impl(
     gaussians: &Gaussians,
     camera: &Camera,
     options: &RenderOptions,
+    allow_subgroups: bool,
     poison: bool,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
     camera.validate()?;
@@ -108,7 +110,7 @@ pub(crate) fn forward_impl(
     let mut keep = Vec::new();
 
     // Submission 1: project, depth sort, tile counts in depth order, their scan.
-    let projected = ctx.storage::<[f32; 12]>(n as usize)?;
+    let projected = ctx.storage::<[f32; 8]>(n as usize)?;
     let rects = ctx.storage::<[u32; 4]>(n as usize)?;
     let depth_keys = ctx.storage::<u32>(n as usize)?;
     let mut encoder = ctx.device.create_command_encoder(&Default::default());
@@ -211,10 +213,11 @@ pub(crate) fn forward_impl(
             groups(pairs, WG),
         );
     }
+    let subgroups = ctx.info.features.subgroups && allow_subgroups;
     dispatch(
         ctx,
         &mut encoder,
-        &kernels::blend(variant),
+        &kernels::blend(variant, subgroups),
         &[
             (0, storage(&projected)),
             (1, storage(&by_tile.values)),
@@ -224,7 +227,7 @@ pub(crate) fn forward_impl(
             (5, storage(&pixel_state)),
             (15, frame_buffer.as_entire_binding()),
         ],
-        frame.tiles(),
+        groups(frame.tiles(), kernels::blend_tile_group(subgroups)),
     );
     ctx.queue.submit(Some(encoder.finish()));
     let mut values = ctx.read::<f32>(&image, image_len)?;

@@ -18,7 +18,26 @@ use super::constants::{FAR, LOW_PASS, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, N
 /// adapter, where every pixel of a tile evaluates every Gaussian of the tile's list (divergent
 /// branches are masked, not skipped), 8x8 tiles halved forward and backward time at 100k
 /// Gaussians (256x256) against 16x16, and 4x4 gained nothing more (twice the pairs to sort).
+/// The blend kernels give each thread one tile row as two vec4 quads, so it must be 8.
 pub const GPU_TILE: u32 = 8;
+const _: () = assert!(
+    GPU_TILE == 8,
+    "blend.wgsl and blend_backward.wgsl blend rows of 8"
+);
+
+/// Tiles per workgroup of the forward blend without subgroups (one thread per tile row):
+/// enough threads for a real GPU's wave; on the software adapter each tile's rows fill one
+/// SIMD vector. With subgroups a workgroup is one tile, so no subgroup spans two.
+const TILE_GROUP: u32 = 8;
+
+/// Tiles per workgroup of [`blend`].
+pub fn blend_tile_group(subgroups: bool) -> u32 {
+    if subgroups {
+        1
+    } else {
+        TILE_GROUP
+    }
+}
 
 /// Threads per workgroup of the scan's first level, and elements per thread.
 pub const SCAN_WG: u32 = 256;
@@ -38,18 +57,41 @@ const PROJECT_BACKWARD: &str = concat!(
     include_str!("../shaders/splat/project_common.wgsl"),
     include_str!("../shaders/splat/project_backward.wgsl"),
 );
-const BLEND: &str = concat!(
+/// Blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or not.
+const BLEND_SUBGROUP: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/tile_share_subgroup.wgsl"),
     include_str!("../shaders/splat/blend.wgsl"),
 );
-const BLEND_BACKWARD_FLOAT: &str = concat!(
+const BLEND_ROWS: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/tile_share_rows.wgsl"),
+    include_str!("../shaders/splat/blend.wgsl"),
+);
+/// Blend backward's accumulation (native f32 atomics or compare-and-swap), then how its rows
+/// share loads and atomics (over a subgroup, or not at all).
+const BLEND_BACKWARD_FLOAT_SUBGROUP: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
     include_str!("../shaders/splat/atomic_float.wgsl"),
+    include_str!("../shaders/splat/tile_share_subgroup.wgsl"),
     include_str!("../shaders/splat/blend_backward.wgsl"),
 );
-const BLEND_BACKWARD_CAS: &str = concat!(
+const BLEND_BACKWARD_FLOAT_ROWS: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/atomic_float.wgsl"),
+    include_str!("../shaders/splat/tile_share_rows.wgsl"),
+    include_str!("../shaders/splat/blend_backward.wgsl"),
+);
+const BLEND_BACKWARD_CAS_SUBGROUP: &str = concat!(
     include_str!("../shaders/splat/common.wgsl"),
     include_str!("../shaders/splat/atomic_cas.wgsl"),
+    include_str!("../shaders/splat/tile_share_subgroup.wgsl"),
+    include_str!("../shaders/splat/blend_backward.wgsl"),
+);
+const BLEND_BACKWARD_CAS_ROWS: &str = concat!(
+    include_str!("../shaders/splat/common.wgsl"),
+    include_str!("../shaders/splat/atomic_cas.wgsl"),
+    include_str!("../shaders/splat/tile_share_rows.wgsl"),
     include_str!("../shaders/splat/blend_backward.wgsl"),
 );
 
@@ -97,16 +139,27 @@ pub fn project_backward(variant: PixelVariant) -> ShaderSpec {
     ))
 }
 
-pub fn blend(variant: PixelVariant) -> ShaderSpec {
-    variant.apply(ShaderSpec::new("splat_blend", BLEND, "main"))
+/// The forward blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or
+/// not; dispatched over `blend_tile_group(subgroups)` tiles per workgroup.
+pub fn blend(variant: PixelVariant, subgroups: bool) -> ShaderSpec {
+    let (name, source) = if subgroups {
+        ("splat_blend_sg", BLEND_SUBGROUP)
+    } else {
+        ("splat_blend", BLEND_ROWS)
+    };
+    variant
+        .apply(ShaderSpec::new(name, source, "main"))
+        .with("TILE_GROUP", format!("{}u", blend_tile_group(subgroups)))
 }
 
-/// Blend backward accumulating with native f32 atomics, or with a compare-and-swap loop.
-pub fn blend_backward(variant: PixelVariant, float_atomics: bool) -> ShaderSpec {
-    let (name, source) = if float_atomics {
-        ("splat_blend_backward_f32", BLEND_BACKWARD_FLOAT)
-    } else {
-        ("splat_blend_backward_cas", BLEND_BACKWARD_CAS)
+/// Blend backward accumulating with native f32 atomics or with a compare-and-swap loop, the
+/// rows of a tile summed over subgroups first (needs the SUBGROUP feature) or not.
+pub fn blend_backward(variant: PixelVariant, float_atomics: bool, subgroups: bool) -> ShaderSpec {
+    let (name, source) = match (float_atomics, subgroups) {
+        (true, true) => ("splat_blend_backward_f32_sg", BLEND_BACKWARD_FLOAT_SUBGROUP),
+        (true, false) => ("splat_blend_backward_f32", BLEND_BACKWARD_FLOAT_ROWS),
+        (false, true) => ("splat_blend_backward_cas_sg", BLEND_BACKWARD_CAS_SUBGROUP),
+        (false, false) => ("splat_blend_backward_cas", BLEND_BACKWARD_CAS_ROWS),
     };
     variant.apply(ShaderSpec::new(name, source, "main"))
 }
@@ -132,22 +185,23 @@ pub fn scan_add() -> ShaderSpec {
 }
 
 pub fn radix_count(bits: u32) -> ShaderSpec {
-    ShaderSpec::new(
-        "splat_radix_count",
+    const SOURCE: &str = concat!(
+        include_str!("../shaders/splat/radix_common.wgsl"),
         include_str!("../shaders/splat/radix_count.wgsl"),
-        "main",
-    )
-    .with("BITS", format!("{bits}u"))
+    );
+    ShaderSpec::new("splat_radix_count", SOURCE, "main").with("BITS", format!("{bits}u"))
 }
 
 /// The scatter step; `identity_values` makes the payload each element's input position
 /// (no values buffer is bound then).
 pub fn radix_scatter(bits: u32, identity_values: bool) -> ShaderSpec {
     const FROM_BUFFER: &str = concat!(
+        include_str!("../shaders/splat/radix_common.wgsl"),
         include_str!("../shaders/splat/radix_values_buffer.wgsl"),
         include_str!("../shaders/splat/radix_scatter.wgsl"),
     );
     const IDENTITY: &str = concat!(
+        include_str!("../shaders/splat/radix_common.wgsl"),
         include_str!("../shaders/splat/radix_values_identity.wgsl"),
         include_str!("../shaders/splat/radix_scatter.wgsl"),
     );

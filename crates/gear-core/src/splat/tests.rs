@@ -206,18 +206,33 @@ impl ImageError {
     }
 }
 
-/// GPU forward vs reference: errors of the feature and alpha images, and of depth.
+/// Whether the kernels run without subgroup operations, and with them where the adapter has
+/// them.
+fn subgroup_choices() -> Vec<bool> {
+    if GpuContext::global().unwrap().info.features.subgroups {
+        vec![false, true]
+    } else {
+        vec![false]
+    }
+}
+
+/// GPU forward (every blend path) vs reference: worst errors of the feature and alpha images,
+/// and of depth.
 fn forward_errors(scene: &Scene, cam: &Camera, depth: bool) -> (ImageError, ImageError) {
     let opts = options(scene.channels, depth);
-    let (gpu, _) = forward_impl(&scene.view(), cam, &opts, true).unwrap();
     let reference = reference::forward(&scene.view(), cam, &opts).unwrap();
-    let image = ImageError::of(&gpu.features, &reference.features)
-        .worst(ImageError::of(&gpu.alpha, &reference.alpha));
-    let depth_err = match (&gpu.depth, &reference.depth) {
-        (Some(g), Some(r)) => ImageError::of(g, r),
-        (None, None) => ImageError::default(),
-        _ => panic!("depth present in one output only"),
-    };
+    let (mut image, mut depth_err) = (ImageError::default(), ImageError::default());
+    for subgroups in subgroup_choices() {
+        let (gpu, _) = forward_impl(&scene.view(), cam, &opts, subgroups, true).unwrap();
+        image = image
+            .worst(ImageError::of(&gpu.features, &reference.features))
+            .worst(ImageError::of(&gpu.alpha, &reference.alpha));
+        depth_err = depth_err.worst(match (&gpu.depth, &reference.depth) {
+            (Some(g), Some(r)) => ImageError::of(g, r),
+            (None, None) => ImageError::default(),
+            _ => panic!("depth present in one output only"),
+        });
+    }
     (image, depth_err)
 }
 
@@ -261,17 +276,17 @@ fn gradients(
     scene: &Scene,
     cam: &Camera,
     depth: bool,
-    accumulation: Accumulation,
+    path: BackwardPath,
 ) -> (GaussianGradients<f32>, GaussianGradients<f64>) {
     let opts = options(scene.channels, depth);
-    let (_, state) = forward_impl(&scene.view(), cam, &opts, true).unwrap();
+    let (_, state) = forward_impl(&scene.view(), cam, &opts, path.subgroups, true).unwrap();
     let img = random_image_grads(cam.pixels(), scene.channels, 99);
     let grads = OutputGradients {
         features: &img[0][..],
         alpha: &img[1][..],
         depth: depth.then_some(&img[2][..]),
     };
-    let gpu = backward_impl(&state, &grads, accumulation, true).unwrap();
+    let gpu = backward_impl(&state, &grads, path.accumulation, path.subgroups, true).unwrap();
     let wide: Vec<Vec<f64>> = img
         .iter()
         .map(|v| v.iter().map(|&x| f64::from(x)).collect())
@@ -310,11 +325,29 @@ fn gradient_errors(gpu: &GaussianGradients<f32>, r: &GaussianGradients<f64>) -> 
     ]
 }
 
-/// Both accumulation paths: native f32 atomics (where the adapter has them) and CAS.
-fn accumulations() -> Vec<Accumulation> {
-    let mut paths = vec![Accumulation::CompareAndSwap];
+/// How the kernels run: blend-backward's native f32 atomics or CAS, and both blends with or
+/// without subgroup operations.
+#[derive(Debug, Clone, Copy)]
+struct BackwardPath {
+    accumulation: Accumulation,
+    subgroups: bool,
+}
+
+/// Every path the adapter can run: CAS always, native f32 atomics where the adapter has them,
+/// each with and (where the adapter has subgroups) without subgroup sums.
+fn backward_paths() -> Vec<BackwardPath> {
+    let mut accumulations = vec![Accumulation::CompareAndSwap];
     if GpuContext::global().unwrap().info.features.float32_atomics {
-        paths.push(Accumulation::Auto);
+        accumulations.push(Accumulation::Auto);
+    }
+    let mut paths = Vec::new();
+    for accumulation in accumulations {
+        for subgroups in subgroup_choices() {
+            paths.push(BackwardPath {
+                accumulation,
+                subgroups,
+            });
+        }
     }
     paths
 }
@@ -330,16 +363,14 @@ fn gradients_match_reference() {
         let cam = camera(w, h);
         for channels in [3usize, 11] {
             for depth in [false, true] {
-                for accumulation in accumulations() {
+                for path in backward_paths() {
                     let scene = Scene::random(n, channels, seed + channels as u64);
-                    let (gpu, reference) = gradients(&scene, &cam, depth, accumulation);
+                    let (gpu, reference) = gradients(&scene, &cam, depth, path);
                     let errors = gradient_errors(&gpu, &reference);
-                    eprintln!(
-                        "gradients n={n} C={channels} depth={depth} {accumulation:?}: {errors:?}"
-                    );
+                    eprintln!("gradients n={n} C={channels} depth={depth} {path:?}: {errors:?}");
                     assert!(
                         errors.iter().all(|&e| e < 1e-3),
-                        "n={n} C={channels} depth={depth} {accumulation:?}: {errors:?}"
+                        "n={n} C={channels} depth={depth} {path:?}: {errors:?}"
                     );
                 }
             }
@@ -365,26 +396,12 @@ fn origin_camera(width: u32, height: u32) -> Camera {
     }
 }
 
-/// Forward and backward (both accumulation paths) finite everywhere; forward within 1e-4 of
-/// the reference (up to rare discrete flips) when `compare` (not for scenes placed exactly on a cull boundary, where f32
-/// and f64 may decide differently); returns the gradients of the last path.
+/// Forward and backward (every path) finite everywhere; forward within 1e-4 of the reference
+/// (up to rare discrete flips) when `compare` (not for scenes placed exactly on a cull
+/// boundary, where f32 and f64 may decide differently); returns the gradients of the last path.
 fn check_finite(name: &str, scene: &Scene, cam: &Camera, compare: bool) -> GaussianGradients<f32> {
     let opts = options(scene.channels, true);
-    let (out, state) = forward_impl(&scene.view(), cam, &opts, true).unwrap();
-    let depth = out.depth.as_ref().unwrap();
-    assert!(
-        all_finite(&out.features) && all_finite(&out.alpha) && all_finite(depth),
-        "{name}: non-finite forward output"
-    );
-    if compare {
-        let reference = reference::forward(&scene.view(), cam, &opts).unwrap();
-        let err = ImageError::of(&out.features, &reference.features)
-            .worst(ImageError::of(&out.alpha, &reference.alpha));
-        assert!(
-            err.within_flips(),
-            "{name}: forward differs from reference {err:?}"
-        );
-    }
+    let reference = compare.then(|| reference::forward(&scene.view(), cam, &opts).unwrap());
     let img = random_image_grads(cam.pixels(), scene.channels, 7);
     let grads = OutputGradients {
         features: &img[0][..],
@@ -392,12 +409,23 @@ fn check_finite(name: &str, scene: &Scene, cam: &Camera, compare: bool) -> Gauss
         depth: Some(&img[2][..]),
     };
     let mut last = None;
-    for accumulation in accumulations() {
-        let g = backward_impl(&state, &grads, accumulation, true).unwrap();
+    for path in backward_paths() {
+        let (out, state) = forward_impl(&scene.view(), cam, &opts, path.subgroups, true).unwrap();
+        let depth = out.depth.as_ref().unwrap();
         assert!(
-            gradients_finite(&g),
-            "{name} {accumulation:?}: non-finite gradient"
+            all_finite(&out.features) && all_finite(&out.alpha) && all_finite(depth),
+            "{name} {path:?}: non-finite forward output"
         );
+        if let Some(reference) = &reference {
+            let err = ImageError::of(&out.features, &reference.features)
+                .worst(ImageError::of(&out.alpha, &reference.alpha));
+            assert!(
+                err.within_flips(),
+                "{name} {path:?}: forward differs from reference {err:?}"
+            );
+        }
+        let g = backward_impl(&state, &grads, path.accumulation, path.subgroups, true).unwrap();
+        assert!(gradients_finite(&g), "{name} {path:?}: non-finite gradient");
         last = Some(g);
     }
     last.unwrap()
@@ -527,5 +555,36 @@ fn needles_match_reference() {
         for (what, e) in [("image", image), ("depth", depth_err)] {
             assert!(e.max <= 1e-4, "depth={depth}: {what} error {e:?}");
         }
+    }
+}
+
+/// Large opaque Gaussians: every pixel stops blending after a few of its tile's hundreds of
+/// entries, so the forward's row early-out (all eight pixels stopped) and the backward's walk
+/// from the tile's longest consumed prefix (rows and pixels with shorter ones skip entries)
+/// both run; partial tiles at the right and bottom edges (90 x 70 is not a multiple of 8).
+#[test]
+fn saturated_scene_matches_reference() {
+    let mut scene = Scene::random_sized(600, 3, 41, -2.0);
+    for l in &mut scene.opacity_logits {
+        *l += 5.0;
+    }
+    let cam = camera(90, 70);
+    let opts = options(scene.channels, true);
+    let reference = reference::forward(&scene.view(), &cam, &opts).unwrap();
+    let saturated = reference.alpha.iter().filter(|&&a| a > 0.999).count();
+    assert!(
+        saturated * 10 >= reference.alpha.len() * 9,
+        "only {saturated} of {} pixels saturate: the scene does not test early stops",
+        reference.alpha.len()
+    );
+    let (image, depth_err) = forward_errors(&scene, &cam, true);
+    for (what, e) in [("image", image), ("depth", depth_err)] {
+        assert!(e.max <= 1e-4, "{what} error {e:?}");
+    }
+    for path in backward_paths() {
+        let (gpu, reference) = gradients(&scene, &cam, true, path);
+        let errors = gradient_errors(&gpu, &reference);
+        eprintln!("saturated gradients {path:?}: {errors:?}");
+        assert!(errors.iter().all(|&e| e < 1e-3), "{path:?}: {errors:?}");
     }
 }

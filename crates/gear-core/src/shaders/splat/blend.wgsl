@@ -1,9 +1,22 @@
-// Stage 6, one workgroup per TILE x TILE tile, one thread per pixel: blends the tile's
-// depth-sorted list front to back with the contract's guards. Writes the image (features, alpha, and depth
-// when WITH_DEPTH) and, for the backward pass, each pixel's final transmittance and the end of
-// the list prefix it consumed. Specialised with: CHANNELS, WITH_DEPTH, contract constants.
+// Stage 6, one thread per pixel row of an 8 x 8 tile (TILE_GROUP tiles per workgroup): blends
+// the tile's depth-sorted list front to back with the contract's guards, for the row's eight
+// pixels at once (two vec4 quads). Writes the image (features, alpha, and depth when
+// WITH_DEPTH) and, for the backward pass, each pixel's final transmittance and the end of the
+// list prefix it consumed. Specialised with: CHANNELS, WITH_DEPTH, TILE (must be 8),
+// TILE_GROUP, contract constants.
+//
+// With subgroup operations (tile_share_subgroup.wgsl, TILE_GROUP = 1 so that a subgroup never
+// spans two tiles) one invocation loads each Gaussian and broadcasts it to the other rows,
+// and the rows stop walking the list together once all their pixels have stopped; without
+// them (tile_share_rows.wgsl) every row loads for itself and stops on its own.
+//
+// Why rows of vec4s: on the software adapter every load from memory inside a loop is a
+// per-lane gather, and with one thread per pixel those gathers took most of the time; here a
+// Gaussian is loaded once per eight pixels. The per-pixel state lives in vectors, not arrays
+// indexed by pixel (which would be gathers again), and per-pixel decisions are selects.
+// No per-pixel bounding box is tested: it would only skip pixels the alpha test skips.
 
-// Per Gaussian: (u, v, z, opacity), (conic a, b, c, 0), pixel box (see project.wgsl).
+// Per Gaussian: (u, v, z, opacity), (conic a, b, c, level) (see project.wgsl).
 @group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
 @group(0) @binding(1) var<storage, read> tile_values: array<u32>;
 @group(0) @binding(2) var<storage, read> ranges: array<u32>;
@@ -13,64 +26,116 @@
 // Per pixel: (bits of final T, end of the consumed list prefix).
 @group(0) @binding(5) var<storage, read_write> pixel_state: array<u32>;
 
-@compute @workgroup_size(TILE, TILE)
+// Four pixels of a row.
+struct Quad {
+    features: array<vec4<f32>, CHANNELS>,
+    depth: vec4<f32>,
+    transmittance: vec4<f32>,
+    consumed: vec4<u32>,
+    // Blending has stopped (or the pixel is past the image edge).
+    stopped: vec4<bool>,
+}
+
+fn new_quad(first: u32, row_len: u32, start: u32) -> Quad {
+    var q: Quad;
+    q.transmittance = vec4<f32>(1.0);
+    q.consumed = vec4<u32>(start);
+    q.stopped = vec4<u32>(first) + vec4<u32>(0u, 1u, 2u, 3u) >= vec4<u32>(row_len);
+    return q;
+}
+
+// Blends list entry k (Gaussian head, conic, colour own) into the quad's pixels at x = xs,
+// y = cy; returns how many of them stopped.
+fn blend_quad(
+    q: ptr<function, Quad>,
+    xs: vec4<f32>,
+    cy: f32,
+    head: vec4<f32>,
+    conic: vec3<f32>,
+    own: ptr<function, array<f32, CHANNELS>>,
+    k: u32,
+) -> u32 {
+    let dx = xs - head.x;
+    let dy = cy - head.y;
+    let power = gaussian_power(dx, dy, conic);
+    let alpha = min(vec4<f32>(MAX_ALPHA), head.w * exp(power));
+    let t = (*q).transmittance;
+    let next = t * (1.0 - alpha);
+    let hit = !(*q).stopped & power <= vec4<f32>(0.0) & alpha >= vec4<f32>(MIN_ALPHA);
+    let stop = hit & next < vec4<f32>(MIN_TRANSMITTANCE);
+    let blend = hit & !stop;
+    (*q).stopped = (*q).stopped | stop;
+    let w = select(vec4<f32>(0.0), alpha * t, blend);
+    for (var c = 0u; c < CHANNELS; c++) {
+        (*q).features[c] += w * (*own)[c];
+    }
+    if WITH_DEPTH {
+        (*q).depth += w * head.z;
+    }
+    (*q).transmittance = select(t, next, blend);
+    (*q).consumed = select((*q).consumed, vec4<u32>(k + 1u), blend);
+    return dot(vec4<u32>(stop), vec4<u32>(1u));
+}
+
+fn store_quad(q: ptr<function, Quad>, first: u32, row_len: u32, row_start: u32) {
+    let pixels = frame.width * frame.height;
+    for (var i = 0u; i < 4u && first + i < row_len; i++) {
+        let pix = row_start + first + i;
+        let t = (*q).transmittance[i];
+        for (var c = 0u; c < CHANNELS; c++) {
+            image[pix * CHANNELS + c] = (*q).features[c][i] + t * background(c);
+        }
+        image[pixels * CHANNELS + pix] = 1.0 - t;
+        if WITH_DEPTH {
+            image[pixels * (CHANNELS + 1u) + pix] = (*q).depth[i];
+        }
+        pixel_state[2u * pix] = bitcast<u32>(t);
+        pixel_state[2u * pix + 1u] = (*q).consumed[i];
+    }
+}
+
+@compute @workgroup_size(TILE * TILE_GROUP)
 fn main(
     @builtin(local_invocation_id) lid: vec3<u32>,
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
 ) {
-    let tile = wg.x + wg.y * nwg.x;
-    let px = (tile % frame.tiles_x) * TILE + lid.x;
-    let py = (tile / frame.tiles_x) * TILE + lid.y;
-    if tile >= frame.tiles_x * frame.tiles_y || px >= frame.width || py >= frame.height {
+    let tile = (wg.x + wg.y * nwg.x) * TILE_GROUP + lid.x / TILE;
+    if tile >= frame.tiles_x * frame.tiles_y {
         return;
     }
-    let pixels = frame.width * frame.height;
-    let pix = py * frame.width + px;
-    let centre = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
+    // Rows below the image walk the list with the others, with no pixels.
+    let row = tile_row(tile, lid.x % TILE);
     let start = ranges[2u * tile];
     let end = ranges[2u * tile + 1u];
 
-    var acc: array<f32, CHANNELS>;
-    var depth = 0.0;
-    var transmittance = 1.0;
-    var consumed = start;
+    var left = new_quad(0u, row.len, start);
+    var right = new_quad(4u, row.len, start);
+    var live = row.len;
+    let leader = leads_tile();
+    var own: array<f32, CHANNELS>;
     for (var k = start; k < end; k++) {
-        let g = tile_values[k];
-        let bounds = projected[3u * g + 2u];
-        if any(centre < bounds.xy) || any(centre > bounds.zw) {
-            continue;
-        }
-        let head = projected[3u * g];
-        let power = gaussian_power(centre - head.xy, projected[3u * g + 1u].xyz);
-        if power > 0.0 {
-            continue;
-        }
-        let alpha = min(MAX_ALPHA, head.w * exp(power));
-        if alpha < MIN_ALPHA {
-            continue;
-        }
-        let next = transmittance * (1.0 - alpha);
-        if next < MIN_TRANSMITTANCE {
+        if tile_all(live == 0u) {
             break;
         }
-        let w = alpha * transmittance;
+        var head = vec4<f32>(0.0);
+        var conic = vec4<f32>(0.0);
+        if leader {
+            let g = tile_values[k];
+            head = projected[2u * g];
+            conic = projected[2u * g + 1u];
+            for (var c = 0u; c < CHANNELS; c++) {
+                own[c] = features[g * CHANNELS + c];
+            }
+        }
+        head = from_leader_vec4(head);
+        conic = from_leader_vec4(conic);
         for (var c = 0u; c < CHANNELS; c++) {
-            acc[c] += w * features[g * CHANNELS + c];
+            own[c] = from_leader_f32(own[c]);
         }
-        if WITH_DEPTH {
-            depth += w * head.z;
-        }
-        transmittance = next;
-        consumed = k + 1u;
+        live -= blend_quad(&left, row.xs, row.cy, head, conic.xyz, &own, k);
+        live -= blend_quad(&right, row.xs + 4.0, row.cy, head, conic.xyz, &own, k);
     }
-    for (var c = 0u; c < CHANNELS; c++) {
-        image[pix * CHANNELS + c] = acc[c] + transmittance * background(c);
-    }
-    image[pixels * CHANNELS + pix] = 1.0 - transmittance;
-    if WITH_DEPTH {
-        image[pixels * (CHANNELS + 1u) + pix] = depth;
-    }
-    pixel_state[2u * pix] = bitcast<u32>(transmittance);
-    pixel_state[2u * pix + 1u] = consumed;
+    store_quad(&left, 0u, row.len, row.start);
+    store_quad(&right, 4u, row.len, row.start);
 }

@@ -1,10 +1,19 @@
-// Backward of stage 6, one thread per pixel row of a tile: replays each pixel's consumed list
-// prefix back to front, recovering each T_i = T_{i+1} / (1 - alpha_i) from the stored final T,
-// sums the row's gradient contributions per Gaussian in registers, and adds them to the
+// Backward of stage 6, one thread per pixel row of an 8 x 8 tile, the row's eight pixels as
+// two vec4 quads (as in blend.wgsl, and for the same reason: one load of a Gaussian per eight
+// pixels, per-pixel state in vectors, per-pixel decisions as selects). Replays each pixel's
+// consumed list prefix back to front, recovering each T_i = T_{i+1} / (1 - alpha_i) from the
+// stored final T, sums the row's gradient contributions per Gaussian, and adds them to the
 // per-Gaussian gradients (screen-space geometry, opacity, z, features) with add_geometry /
-// add_gradient (atomic_float.wgsl or atomic_cas.wgsl, chosen by the host). Atomics took over
-// half of a per-pixel version's time on lavapipe; summing rows first made backward ~30% faster.
-// Specialised with: CHANNELS, WITH_DEPTH, contract constants.
+// add_gradient (atomic_float.wgsl or atomic_cas.wgsl, chosen by the host).
+//
+// The atomics (on the software adapter a compare-and-swap loop per lane: x86 has no float
+// atomic add) and the loads of each Gaussian (a gather per lane there) dominate, so with
+// subgroup operations one invocation per subgroup does both for all of its rows
+// (tile_share_subgroup.wgsl): it loads the Gaussian and broadcasts it, and adds the rows' sums
+// totalled over the subgroup. Without them every row does both itself (tile_share_rows.wgsl).
+// Either way each row first sums its pixels' contributions, and all rows of a tile walk its
+// list in step, from the longest consumed prefix, so a subgroup sees one Gaussian at a time.
+// Specialised with: CHANNELS, WITH_DEPTH, TILE (must be 8), contract constants.
 
 @group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
 @group(0) @binding(1) var<storage, read> tile_values: array<u32>;
@@ -19,6 +28,116 @@ fn feature_base() -> u32 {
     return 11u * frame.n;
 }
 
+// Four pixels of a row, replayed from the back. Pixels past the image edge have consumed
+// nothing (consumed = 0 is below every list entry).
+struct Quad {
+    // T after the entries replayed so far, i.e. T_{i+1} for the next one, i.
+    transmittance: vec4<f32>,
+    final_t: vec4<f32>,
+    consumed: vec4<u32>,
+    grad_alpha: vec4<f32>,
+    grad_depth: vec4<f32>,
+    grad_f: array<vec4<f32>, CHANNELS>,
+    // Σ_{j>i} w_j f_j + T_final · background, and Σ_{j>i} w_j z_j.
+    behind_f: array<vec4<f32>, CHANNELS>,
+    behind_d: vec4<f32>,
+}
+
+// A row's summed contributions to one Gaussian: conic a, b, c, mean u, v, opacity, z
+// (add_geometry slots 0..6), and the features.
+struct Sums {
+    geometry: array<f32, 7>,
+    features: array<f32, CHANNELS>,
+    touched: bool,
+}
+
+// End of the longest consumed prefix among the tile's pixels.
+var<workgroup> tile_last: atomic<u32>;
+var<workgroup> tile_last_copy: u32;
+
+fn sum4(v: vec4<f32>) -> f32 {
+    return dot(v, vec4<f32>(1.0));
+}
+
+fn load_quad(first: u32, row_len: u32, row_start: u32) -> Quad {
+    let pixels = frame.width * frame.height;
+    var q: Quad;
+    for (var i = 0u; i < 4u && first + i < row_len; i++) {
+        let pix = row_start + first + i;
+        q.final_t[i] = bitcast<f32>(pixel_state[2u * pix]);
+        q.consumed[i] = pixel_state[2u * pix + 1u];
+        q.grad_alpha[i] = image_grads[pixels * CHANNELS + pix];
+        if WITH_DEPTH {
+            q.grad_depth[i] = image_grads[pixels * (CHANNELS + 1u) + pix];
+        }
+        for (var c = 0u; c < CHANNELS; c++) {
+            q.grad_f[c][i] = image_grads[pix * CHANNELS + c];
+        }
+    }
+    q.transmittance = q.final_t;
+    for (var c = 0u; c < CHANNELS; c++) {
+        q.behind_f[c] = q.final_t * background(c);
+    }
+    return q;
+}
+
+// Replays list entry k (Gaussian head, conic, colour own) at the quad's pixels x = xs, y = cy,
+// adding the contributions to sums. Values of pixels the entry does not touch are computed
+// but never selected, so they cannot leak an overflow into the sums.
+fn replay_quad(
+    q: ptr<function, Quad>,
+    xs: vec4<f32>,
+    cy: f32,
+    head: vec4<f32>,
+    conic: vec3<f32>,
+    own: ptr<function, array<f32, CHANNELS>>,
+    k: u32,
+    sums: ptr<function, Sums>,
+) {
+    let dx = xs - head.x;
+    let dy = cy - head.y;
+    let power = gaussian_power(dx, dy, conic);
+    let gauss = exp(power);
+    let raw = head.w * gauss;
+    let alpha = min(vec4<f32>(MAX_ALPHA), raw);
+    let hit = vec4<u32>(k) <= (*q).consumed & power <= vec4<f32>(0.0)
+        & alpha >= vec4<f32>(MIN_ALPHA);
+    let zero = vec4<f32>(0.0);
+    let keep = 1.0 - alpha;
+    let t_i = (*q).transmittance / keep;
+    let w = alpha * t_i;
+    // dL/dalpha_i: own contribution T_i·f_i minus what it hides behind it, 1/(1-alpha_i)
+    // times everything blended after it (background and alpha image included).
+    var grad_a = (*q).grad_alpha * (*q).final_t / keep;
+    for (var c = 0u; c < CHANNELS; c++) {
+        let f = (*own)[c];
+        let behind = (*q).behind_f[c];
+        grad_a += (*q).grad_f[c] * (f * t_i - behind / keep);
+        (*sums).features[c] += sum4(select(zero, w * (*q).grad_f[c], hit));
+        (*q).behind_f[c] = select(behind, behind + w * f, hit);
+    }
+    if WITH_DEPTH {
+        grad_a += (*q).grad_depth * (head.z * t_i - (*q).behind_d / keep);
+        (*sums).geometry[6] += sum4(select(zero, w * (*q).grad_depth, hit));
+        (*q).behind_d = select((*q).behind_d, (*q).behind_d + w * head.z, hit);
+    }
+    // The 0.999 clamp passes no gradient to opacity and power.
+    let unclamped = hit & raw <= vec4<f32>(MAX_ALPHA);
+    let grad_power = grad_a * alpha;
+    (*sums).geometry[0] += sum4(select(zero, -0.5 * dx * dx * grad_power, unclamped));
+    (*sums).geometry[1] += sum4(select(zero, -dx * dy * grad_power, unclamped));
+    (*sums).geometry[2] += sum4(select(zero, -0.5 * dy * dy * grad_power, unclamped));
+    (*sums).geometry[3] += sum4(
+        select(zero, (conic.x * dx + conic.y * dy) * grad_power, unclamped),
+    );
+    (*sums).geometry[4] += sum4(
+        select(zero, (conic.y * dx + conic.z * dy) * grad_power, unclamped),
+    );
+    (*sums).geometry[5] += sum4(select(zero, grad_a * gauss, unclamped));
+    (*sums).touched = (*sums).touched || any(hit);
+    (*q).transmittance = select((*q).transmittance, t_i, hit);
+}
+
 @compute @workgroup_size(TILE)
 fn main(
     @builtin(local_invocation_id) lid: vec3<u32>,
@@ -26,112 +145,63 @@ fn main(
     @builtin(num_workgroups) nwg: vec3<u32>,
 ) {
     let tile = wg.x + wg.y * nwg.x;
-    let py = (tile / frame.tiles_x) * TILE + lid.x;
-    if tile >= frame.tiles_x * frame.tiles_y || py >= frame.height {
+    if tile >= frame.tiles_x * frame.tiles_y {
         return;
     }
-    let x0 = (tile % frame.tiles_x) * TILE;
-    let row_len = min(TILE, frame.width - x0);
-    let pixels = frame.width * frame.height;
+    // Rows below the image walk the list with the others, with no pixels.
+    let row = tile_row(tile, lid.x);
     let start = ranges[2u * tile];
-    let cy = f32(py) + 0.5;
 
-    // Per pixel of the row: transmittance (from the back), consumed prefix end, image
-    // gradients, and Σ_{j>i} w_j f_j + T_final · background (behind_f), Σ_{j>i} w_j z_j.
-    var transmittance: array<f32, TILE>;
-    var final_t: array<f32, TILE>;
-    var consumed: array<u32, TILE>;
-    var grad_alpha_img: array<f32, TILE>;
-    var grad_depth: array<f32, TILE>;
-    var behind_d: array<f32, TILE>;
-    var grad_f: array<f32, TILE * CHANNELS>;
-    var behind_f: array<f32, TILE * CHANNELS>;
-    var last = start;
-    for (var j = 0u; j < row_len; j++) {
-        let pix = py * frame.width + x0 + j;
-        final_t[j] = bitcast<f32>(pixel_state[2u * pix]);
-        transmittance[j] = final_t[j];
-        consumed[j] = pixel_state[2u * pix + 1u];
-        last = max(last, consumed[j]);
-        grad_alpha_img[j] = image_grads[pixels * CHANNELS + pix];
-        if WITH_DEPTH {
-            grad_depth[j] = image_grads[pixels * (CHANNELS + 1u) + pix];
-        }
-        behind_d[j] = 0.0;
-        for (var c = 0u; c < CHANNELS; c++) {
-            grad_f[j * CHANNELS + c] = image_grads[pix * CHANNELS + c];
-            behind_f[j * CHANNELS + c] = final_t[j] * background(c);
-        }
+    var left = load_quad(0u, row.len, row.start);
+    var right = load_quad(4u, row.len, row.start);
+    let consumed = max(left.consumed, right.consumed);
+    atomicMax(&tile_last, max(max(consumed.x, consumed.y), max(consumed.z, consumed.w)));
+    workgroupBarrier();
+    if lid.x == 0u {
+        tile_last_copy = max(start, atomicLoad(&tile_last));
     }
+    let last = workgroupUniformLoad(&tile_last_copy);
+
     let base = feature_base();
+    let leader = leads_tile();
+    var own: array<f32, CHANNELS>;
     for (var k = last; k > start; k--) {
-        let g = tile_values[k - 1u];
-        let bounds = projected[3u * g + 2u];
-        if cy < bounds.y || cy > bounds.w {
-            continue;
-        }
-        let head = projected[3u * g];
-        let conic = projected[3u * g + 1u].xyz;
-        // This row's summed contributions to Gaussian g.
-        var sum_geometry = array<f32, 7>();
-        var sum_f = array<f32, CHANNELS>();
-        var touched = false;
-        for (var j = 0u; j < row_len; j++) {
-            let centre = vec2<f32>(f32(x0 + j) + 0.5, cy);
-            if k > consumed[j] || centre.x < bounds.x || centre.x > bounds.z {
-                continue;
-            }
-            let d = centre - head.xy;
-            let power = gaussian_power(d, conic);
-            if power > 0.0 {
-                continue;
-            }
-            let gauss = exp(power);
-            let raw = head.w * gauss;
-            let alpha = min(MAX_ALPHA, raw);
-            if alpha < MIN_ALPHA {
-                continue;
-            }
-            touched = true;
-            let keep = 1.0 - alpha;
-            let t_i = transmittance[j] / keep;
-            let w = alpha * t_i;
-            // dL/dalpha_i: own contribution T_i·f_i minus what it hides behind it,
-            // 1/(1-alpha_i) times everything blended after it (background and alpha image
-            // included).
-            var grad_a = grad_alpha_img[j] * final_t[j] / keep;
+        var g = 0u;
+        var head = vec4<f32>(0.0);
+        var conic = vec4<f32>(0.0);
+        if leader {
+            g = tile_values[k - 1u];
+            head = projected[2u * g];
+            conic = projected[2u * g + 1u];
             for (var c = 0u; c < CHANNELS; c++) {
-                let f = features[g * CHANNELS + c];
-                let at = j * CHANNELS + c;
-                grad_a += grad_f[at] * (f * t_i - behind_f[at] / keep);
-                sum_f[c] += w * grad_f[at];
-                behind_f[at] += w * f;
+                own[c] = features[g * CHANNELS + c];
             }
-            if WITH_DEPTH {
-                grad_a += grad_depth[j] * (head.z * t_i - behind_d[j] / keep);
-                sum_geometry[6] += w * grad_depth[j];
-                behind_d[j] += w * head.z;
-            }
-            if raw <= MAX_ALPHA {
-                let grad_power = grad_a * alpha;
-                sum_geometry[0] += -0.5 * d.x * d.x * grad_power;
-                sum_geometry[1] += -d.x * d.y * grad_power;
-                sum_geometry[2] += -0.5 * d.y * d.y * grad_power;
-                sum_geometry[3] += (conic.x * d.x + conic.y * d.y) * grad_power;
-                sum_geometry[4] += (conic.y * d.x + conic.z * d.y) * grad_power;
-                sum_geometry[5] += grad_a * gauss;
-            }
-            transmittance[j] = t_i;
         }
-        if touched {
+        g = from_leader_u32(g);
+        head = from_leader_vec4(head);
+        conic = from_leader_vec4(conic);
+        for (var c = 0u; c < CHANNELS; c++) {
+            own[c] = from_leader_f32(own[c]);
+        }
+        var sums = Sums();
+        replay_quad(&left, row.xs, row.cy, head, conic.xyz, &own, k, &sums);
+        replay_quad(&right, row.xs + 4.0, row.cy, head, conic.xyz, &own, k, &sums);
+        for (var c = 0u; c < CHANNELS; c++) {
+            sums.features[c] = tile_sum(sums.features[c]);
+        }
+        for (var q = 0u; q < 7u; q++) {
+            sums.geometry[q] = tile_sum(sums.geometry[q]);
+        }
+        let touched = tile_sum(select(0.0, 1.0, sums.touched)) > 0.0;
+        if touched && leader {
             for (var c = 0u; c < CHANNELS; c++) {
-                add_gradient(base + g * CHANNELS + c, sum_f[c]);
+                add_gradient(base + g * CHANNELS + c, sums.features[c]);
             }
             for (var q = 0u; q < 6u; q++) {
-                add_geometry(8u * g + q, sum_geometry[q]);
+                add_geometry(8u * g + q, sums.geometry[q]);
             }
             if WITH_DEPTH {
-                add_geometry(8u * g + 6u, sum_geometry[6]);
+                add_geometry(8u * g + 6u, sums.geometry[6]);
             }
         }
     }

@@ -26,12 +26,13 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     }
     let g = order[i];
     let r = rects[g];
+    let gaussian = tile_test_of(g);
     var slot = offsets[i];
     let end = offsets[i + 1u];
-    for (var round = 0u; round < 2u; round++) {
+    for (var round = 0u; round < 2u && slot < end; round++) {
         for (var y = r.y; y < r.w; y++) {
             for (var x = r.x; x < r.z; x++) {
-                if slot < end && meets_tile(g, x, y) == (round == 0u) {
+                if slot < end && meets_tile(gaussian, x, y) == (round == 0u) {
                     tile_keys[slot] = y * params.tiles_x + x;
                     tile_values[slot] = g;
                     slot++;

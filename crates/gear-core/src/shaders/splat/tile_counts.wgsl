@@ -18,10 +18,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     if i < params.n {
         let g = order[i];
         let r = rects[g];
+        let gaussian = tile_test_of(g);
         var count = 0u;
         for (var y = r.y; y < r.w; y++) {
             for (var x = r.x; x < r.z; x++) {
-                count += u32(meets_tile(g, x, y));
+                count += u32(meets_tile(gaussian, x, y));
             }
         }
         counts[i] = count;

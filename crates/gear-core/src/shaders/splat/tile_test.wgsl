@@ -11,9 +11,20 @@ fn edge_minimum(q: f32, a: f32, b: f32, c: f32, lo: f32, hi: f32) -> f32 {
     return a * q * q + 2.0 * b * q * t + c * t * t;
 }
 
-fn meets_tile(g: u32, tx: u32, ty: u32) -> bool {
-    let mean = projected[3u * g].xy;
-    let conic = projected[3u * g + 1u];
+// What meets_tile needs of a Gaussian, loaded once for all the tiles of its rectangle.
+struct TileTest {
+    mean: vec2<f32>,
+    // Conic a, b, c and the level.
+    conic: vec4<f32>,
+}
+
+fn tile_test_of(g: u32) -> TileTest {
+    return TileTest(projected[2u * g].xy, projected[2u * g + 1u]);
+}
+
+fn meets_tile(gaussian: TileTest, tx: u32, ty: u32) -> bool {
+    let mean = gaussian.mean;
+    let conic = gaussian.conic;
     let corner = vec2<f32>(f32(tx), f32(ty)) * f32(TILE);
     // Pixel centres of the tile relative to the mean, as a continuous rectangle.
     let lo = corner + vec2<f32>(0.5) - mean;

@@ -1,0 +1,28 @@
+// Shared by radix_count.wgsl and radix_scatter.wgsl (each binds `params`): the pass
+// parameters, the chunk of keys each thread owns, and the digit a pass sorts by.
+// Specialised with: BITS (digit width).
+
+struct SortParams {
+    n: u32,
+    shift: u32,
+    chunk: u32,
+    threads: u32,
+}
+
+const BINS: u32 = 1u << BITS;
+
+// Index of the thread in a 1D grid of 64-thread workgroups folded into 2D.
+fn sort_thread(gid: vec3<u32>, nwg: vec3<u32>) -> u32 {
+    return gid.x + gid.y * nwg.x * 64u;
+}
+
+// [begin, end) of thread t's chunk of keys.
+fn chunk_of(t: u32) -> vec2<u32> {
+    let begin = t * params.chunk;
+    return vec2<u32>(begin, min(begin + params.chunk, params.n));
+}
+
+// This pass's digit of key.
+fn digit(key: u32) -> u32 {
+    return (key >> params.shift) & (BINS - 1u);
+}
