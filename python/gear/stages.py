@@ -262,9 +262,9 @@ class Refine(_Stage):
         """M-step: only the motion trains, under hard assignment, on one target view.
 
         The Gaussians (geometry, colour, opacity, logits) are held fixed, so the motion alone
-        has to explain the target view. Letting them co-train (as in the E-step) made every
-        M-phase turn the fridge door further from the truth: on two seeds of the quick fridge
-        the final angle error fell from 4.5° / 5.5° to 3.9° / 3.8° with them held (details in
+        has to explain the target view. With them co-training, the M-phases of the quick
+        fridge turned the door further from the truth; held, the final angle error over four
+        seeds fell from 4.9° to 4.5° on average (better on two, even on one, worse on one;
         docs/training.md). It also saves the anchor render and the Gaussians' backward, and
         leaves the densification statistics to the E-steps, where densification happens."""
         c, g = self.config, self.gaussians
