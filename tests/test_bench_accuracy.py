@@ -15,6 +15,7 @@ from gear.bench.accuracy import (
     Run,
     budget_config,
     markdown_table,
+    read_csv,
     variants,
     write_results,
 )
@@ -68,6 +69,20 @@ def test_writers_on_fabricated_records(tmp_path):
     image = np.asarray(Image.open(paths["png"]))
     assert image.shape[0] > 300 and image.shape[1] > 600
     assert image[..., :3].std() > 10  # something was drawn
+
+
+def test_csv_round_trip(tmp_path):
+    from gear.bench.accuracy import write_csv
+
+    runs = fake_runs()
+    write_csv(runs, tmp_path / "a.csv")
+    back = read_csv(tmp_path / "a.csv")
+    assert [(r.scene, r.budget, r.variant, r.iterations, r.status) for r in back] == [
+        (r.scene, r.budget, r.variant, r.iterations, r.status) for r in runs]
+    for got, want in zip(back, runs, strict=True):
+        assert got.timings == pytest.approx(want.timings, abs=0.01)  # the CSV keeps 2 decimals
+        assert {k: v for k, v in got.metrics.items() if v is not None} == pytest.approx(
+            {k: v for k, v in want.metrics.items() if v is not None})
 
 
 def test_markdown_table_without_runs_has_header_only():
@@ -152,6 +167,15 @@ def test_run_loop_records_every_run_and_failure(tmp_path, monkeypatch, capsys):
     kept = json.loads((out / "accuracy_runs" / "outputs" / "my_scene-100-default" /
                        "metrics.json").read_text())
     assert kept["cd_w"] == 2.0  # each run keeps its full metrics next to its outputs
+
+    # --append keeps the table and trains only what is not in it yet.
+    seen.clear()
+    code = main(["bench", "accuracy", "--scenes", str(scene), "--profiles", "quick,100,200",
+                 "--out", str(out), "--append"])
+    assert code == 0 and [s[1] for s in seen] == [200]
+    rows = list(csv.DictReader(open(out / "accuracy.csv")))
+    assert [r["budget"] for r in rows] == ["quick", "100", "200"]
+    assert rows[0]["axis_ang"] == "1.5"
 
     seen.clear()
     code = main(["bench", "accuracy", "--scenes", str(scene), "--profiles", "100",

@@ -90,6 +90,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("bench"),
                         help="folder for accuracy.csv/.md/.png (default ./bench)")
+    parser.add_argument("--append", action="store_true",
+                        help="keep the runs already in OUT/accuracy.csv and skip those that "
+                        "finished ok (extend or resume a long benchmark)")
     parser.add_argument("--work", type=Path, default=None,
                         help="folder for generated scenes and training outputs "
                         "(default OUT/accuracy_runs)")
@@ -182,12 +185,18 @@ def run(args: argparse.Namespace) -> int:
         budgets = budgets[:1]
     work = args.work or args.out / "accuracy_runs"
     machine = machine_description()
-    records: list[Run] = []
+    previous = args.out / "accuracy.csv"
+    records = read_csv(previous) if args.append and previous.is_file() else []
+    finished = {(r.scene, r.budget, r.variant) for r in records if r.status == "ok"}
+    records = [r for r in records if (r.scene, r.budget, r.variant) in finished]
     for scene in scenes:
         name = Path(scene).name
         for budget in budgets:
             for variant, overrides, effects in variants(args.ablation):
                 print(f"[{name} / {budget} / {variant}] ", end="", flush=True)
+                if (name, budget, variant) in finished:
+                    print("already in the table", flush=True)
+                    continue
                 try:
                     scene_dir = _scene_dir(scene, effects, work, args)
                 except ValueError as err:
@@ -232,6 +241,26 @@ def write_csv(records: Sequence[Run], path: Path) -> None:
         writer.writeheader()
         for row in rows:
             writer.writerow({c: "" if row.get(c) is None else row.get(c) for c in columns})
+
+
+def read_csv(path: Path) -> list[Run]:
+    """The runs of an accuracy.csv written by `write_csv` (for --append)."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+
+    def number(text: str | None) -> float | None:
+        return float(text) if text else None
+
+    records = []
+    for row in rows:
+        timings = {key[len("time_"):-len("_s")]: float(value) for key, value in row.items()
+                   if key.startswith("time_") and key.endswith("_s") and value}
+        records.append(Run(
+            row["scene"], row["budget"], row["variant"], int(row["iterations"] or 0), timings,
+            {key: number(row.get(key)) for key, _, _ in METRICS},
+            int(row["type_mismatches"] or 0), row["status"],
+        ))
+    return records
 
 
 def _cell(value: float | None) -> str:
