@@ -19,6 +19,7 @@ from gear import checkpoint
 from gear.coarse import SurfaceTest
 from gear.config import TrainConfig
 from gear.data import Scene, load_scene
+from gear.device import limit_torch_threads
 from gear.model import Gaussians, points_from_depth, points_from_masks, render, scene_extent
 from gear.stages import ReconstructState, Refine, TrainView
 
@@ -323,13 +324,11 @@ def train(scene_dir: Path, out_dir: Path, config: TrainConfig, *, resume: bool =
         trainer.timings.update(state["timings"])
         trainer.log.say(f"resuming from {state['stage']} iteration {state['iteration']}")
     torch.manual_seed(config.seed)
-    # One torch thread while training: the rasterizer's (lavapipe's) worker threads need the
-    # cores, and torch's OpenMP workers spin against them. Measured on this 2-core machine
-    # (shared with other jobs), quick stage 1 on the 64 px fridge, 3 alternating runs each:
-    # 9.6 it/s with one thread vs 2.3 it/s with torch's default of two (0.03 vs 0.13 s CPU/it);
-    # after a faster rasterizer, 200 iterations: 33.8 vs 8.9 it/s (0.016 vs 0.068 s CPU/it).
+    # The torch thread policy of the CLI (gear.device.limit_torch_threads: one thread unless
+    # GEAR_TORCH_THREADS says otherwise), restored afterwards for library callers. Measured on
+    # the 64 px quick fridge: 33.8 vs 8.9 it/s with one thread vs torch's default two.
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+    limit_torch_threads()
     try:
         trainer.stage1(state)
         if state is not None and state.get("coarse") is not None:
