@@ -16,6 +16,7 @@ from gear.bench.accuracy import (
     budget_config,
     markdown_table,
     read_csv,
+    scaled_em_interval,
     variants,
     write_results,
 )
@@ -122,6 +123,16 @@ def test_ablation_variants_cover_the_studies():
     assert variants(False) == [("default", {}, ())]
 
 
+def test_em_interval_keeps_the_papers_share_of_stage_3():
+    full = make_config("full")
+    assert scaled_em_interval(500, full) == 500  # the paper's own schedule is unchanged
+    quick = make_config("quick")  # 300 stage-3 iterations = 1/100 of the paper's 30k
+    assert [scaled_em_interval(n, quick) for n in EM_INTERVALS] == [1, 2, 5, 20, 30]
+    fast, _ = budget_config("fast")  # 10k: a third
+    assert scaled_em_interval(3000, fast) == 1000
+    assert scaled_em_interval(50, budget_config("quick:150")[0]) == 1  # never 0
+
+
 def test_bad_budget_fails_before_training(tmp_path, capsys):
     code = main(["bench", "accuracy", "--scenes", "fridge", "--profiles", "quick,lots",
                  "--out", str(tmp_path)])
@@ -185,7 +196,9 @@ def test_run_loop_records_every_run_and_failure(tmp_path, monkeypatch, capsys):
     status = {r["variant"]: r["status"] for r in rows}
     assert status["joint"].startswith("failed: stage 3 iteration 7")  # ... but is recorded
     assert status["em_interval=50"] == "ok"
-    assert sorted(s[3] for s in seen if s[2] == "em")[:5] == [50, 250, 500, 500, 2000]
+    # Intervals 50..3000 of a 30k stage 3 at the same share of this budget's 100 iterations;
+    # the plain "em" variant keeps the budget's own interval (the full profile's 500).
+    assert sorted(s[3] for s in seen if s[2] == "em") == [1, 1, 2, 7, 10, 500]
     # A scene folder cannot be regenerated with flawed masks: recorded as skipped, with why.
     assert status["masks:mask-over"].startswith("skipped: ")
     assert "built-in object name" in status["masks:mask-over"]
