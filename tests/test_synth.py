@@ -222,46 +222,14 @@ def test_effects_change_only_their_channel(tmp_path):
 
 def test_cli(tmp_path, capsys):
     out = tmp_path / "cli"
-    assert (
-        main(
-            [
-                "synth",
-                "handle",
-                "--out",
-                str(out),
-                "--res",
-                "32",
-                "--views",
-                "2",
-                "--test-views",
-                "1",
-                "--effects",
-                "mask-jitter",
-            ]
-        )
-        == 0
-    )
+    small = ["--res", "32", "--views", "2", "--test-views", "1"]
+    assert main(["synth", "handle", "--out", str(out), *small, "--effects", "mask-jitter"]) == 0
     meta = json.loads((out / "synth.json").read_text())
     assert meta["object"] == "handle" and meta["effects"] == ["mask-jitter"]
     assert main(["check", str(out)]) == 0
     # Regenerating into a generated scene replaces it; a foreign folder is refused.
-    assert (
-        main(
-            [
-                "synth",
-                "handle",
-                "--out",
-                str(out),
-                "--res",
-                "32",
-                "--views",
-                "1",
-                "--test-views",
-                "0",
-            ]
-        )
-        == 0
-    )
+    one = ["--res", "32", "--views", "1", "--test-views", "0"]
+    assert main(["synth", "handle", "--out", str(out), *one]) == 0
     assert len(load_scene(out).train("start")) == 1 and load_scene(out).test("start") == []
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "keep.txt").write_text("x")

@@ -158,23 +158,8 @@ def test_urdf_errors(urdf, tmp_path):
 
 def test_urdf_cli(urdf, tmp_path):
     out = tmp_path / "cli"
-    args = [
-        "synth",
-        "--urdf",
-        str(urdf),
-        "--out",
-        str(out),
-        "--res",
-        "32",
-        "--views",
-        "2",
-        "--test-views",
-        "0",
-        "--start",
-        "j_drawer=0.1",
-        "--end",
-        "j_drawer=0.1",
-    ]
+    args = ["synth", "--urdf", str(urdf), "--out", str(out), "--res", "32", "--views", "2",
+            "--test-views", "0", "--start", "j_drawer=0.1", "--end", "j_drawer=0.1"]
     assert main(args) == 0
     assert len(load_scene(out).gt.joints) == 1  # the drawer no longer moves
     assert main([*args[:-2], "--end", "j_drawer=oops"]) == 1

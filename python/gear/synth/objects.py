@@ -239,6 +239,25 @@ def oven(rng: Rng) -> Articulated:
     return Articulated("oven", static, [Part(joint, door)])
 
 
+def _door_pair(
+    width: float,
+    height: float,
+    front_y: float,
+    z0: float,
+    color: np.ndarray,
+    rng: Rng,
+    left_states: tuple[float, float],
+    right_states: tuple[float, float],
+) -> list[Part]:
+    """Two 3 cm doors of `width` meeting at x = 0, hinged on their outer edges."""
+    return [
+        _door("door_left", width, height, 0.03, -width, front_y, z0, "left", color, rng,
+              (0.0, 2.0), left_states),
+        _door("door_right", width, height, 0.03, 0.0, front_y, z0, "right", color, rng,
+              (0.0, 2.0), right_states),
+    ]
+
+
 def storage7(rng: Rng) -> Articulated:
     """A cabinet with six moving parts (four drawers, two doors) plus its body: 7 parts."""
     w, d, h, t = 1.0, 0.5, 1.3, 0.025
@@ -270,38 +289,7 @@ def storage7(rng: Rng) -> Articulated:
                 )
             )
     door_h = 0.75 - t - t / 2 - 0.01
-    parts.append(
-        _door(
-            "door_left",
-            half,
-            door_h,
-            0.03,
-            -half,
-            -d / 2,
-            t + 0.005,
-            "left",
-            front_c,
-            rng,
-            (0.0, 2.0),
-            (0.2, 1.2),
-        )
-    )
-    parts.append(
-        _door(
-            "door_right",
-            half,
-            door_h,
-            0.03,
-            0.0,
-            -d / 2,
-            t + 0.005,
-            "right",
-            front_c,
-            rng,
-            (0.0, 2.0),
-            (0.9, 0.3),
-        )
-    )
+    parts += _door_pair(half, door_h, -d / 2, t + 0.005, front_c, rng, (0.2, 1.2), (0.9, 0.3))
     return Articulated("storage7", static, parts)
 
 
@@ -311,36 +299,7 @@ def double_door(rng: Rng) -> Articulated:
     static = shell((w, d, h), (0, 0, h / 2), t, tint(rng, 0.75, 0.25, 0.6), rng)
     static.append(box((w - 2 * t, d - t, t), (0, t / 2, h / 2), tint(rng, 0.75, 0.2, 0.5), rng))
     door_c = tint(rng, 0.8, 0.3, 0.75)
-    parts = [
-        _door(
-            "door_left",
-            w / 2,
-            h,
-            0.03,
-            -w / 2,
-            -d / 2,
-            0.0,
-            "left",
-            door_c,
-            rng,
-            (0.0, 2.0),
-            (0.0, 1.1),
-        ),
-        _door(
-            "door_right",
-            w / 2,
-            h,
-            0.03,
-            0.0,
-            -d / 2,
-            0.0,
-            "right",
-            door_c,
-            rng,
-            (0.0, 2.0),
-            (0.0, 0.7),
-        ),
-    ]
+    parts = _door_pair(w / 2, h, -d / 2, 0.0, door_c, rng, (0.0, 1.1), (0.0, 0.7))
     return Articulated("double_door", static, parts)
 
 
