@@ -268,3 +268,47 @@ def test_identical_states_give_one_static_part_and_no_joint(tmp_path):
     assert not any(r.get("stage") == "stage3" for r in log)  # stage 3 never ran
     assert (out / "meshes/end/static.ply").exists()
     assert not list((out / "meshes/end").glob("part_*.ply"))
+
+
+@pytest.mark.parametrize("views", [1, 3])
+def test_m_step_averages_the_configured_number_of_target_views(monkeypatch, views):
+    import copy
+
+    import torch.nn.functional as F
+
+    from gear import stages
+    from gear.kinematics import deform
+
+    stage = refine_stage(m_step_views=views)
+    cameras = []
+    render = stages.render
+
+    def counting_render(*args, **kwargs):
+        cameras.append(args[5])
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(stages, "render", counting_render)
+    rng_state, motion = stage.generator.get_state(), copy.deepcopy(stage.motion)
+    terms = stage.step(2)  # an M-step (em_interval 2, E first)
+    assert len(cameras) == views
+    # Reference: the same draws (view index, then background, per view), the hard-assigned
+    # model moved by the motion before the step, the image terms averaged over the views.
+    g, replay = stage.gaussians, torch.Generator().manual_seed(0)
+    replay.set_state(rng_state)
+    expected = {"rgb": 0.0, "depth": 0.0}
+    with torch.no_grad():
+        qr, qd = motion.motion()
+        weights = F.one_hot(g.part_ids(), g.num_parts).float()
+        means, quats = deform(g["means"], g["quats"], weights, qr, qd)
+        for camera in cameras:
+            view = stage.target_views[int(torch.randint(len(stage.target_views), (1,),
+                                                        generator=replay))]
+            assert view.camera is camera
+            bg = torch.rand(3, generator=replay)
+            out = render(means, quats, g["log_scales"], g["opacity"], g.rgb(), camera, bg,
+                         depth=True)
+            for name, value in stages._image_terms(out, view, bg, stage.config).items():
+                expected[name] += float(value) / views
+    assert terms.keys() == expected.keys()
+    for name in terms:
+        assert terms[name] == pytest.approx(expected[name], rel=1e-5, abs=1e-7), name

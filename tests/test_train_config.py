@@ -40,3 +40,17 @@ def test_overrides_reject_unknown_fields_and_bad_values(tmp_path):
         make_config("fast", {"em_interval": 0})
     with pytest.raises(ValueError, match="not found"):
         load_overrides(tmp_path / "missing.json")
+
+
+def test_m_step_views_is_a_field_that_round_trips_and_defaults_for_old_configs(tmp_path):
+    c = make_config("quick", {"m_step_views": 2})
+    c.save(tmp_path / "config.json")
+    assert load_config(tmp_path / "config.json").m_step_views == 2
+    # A config.json (or checkpoint config) written before the field existed resumes with the
+    # default of 4 views per M-step.
+    old = json.loads(make_config("quick").to_json())
+    del old["m_step_views"]
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    assert load_config(tmp_path / "old.json").m_step_views == 4
+    with pytest.raises(ValueError, match="m_step_views"):
+        make_config("quick", {"m_step_views": 0})

@@ -163,13 +163,6 @@ class ReconstructState(_Stage):
         self.generator.set_state(state["generator"])
 
 
-# Target views averaged per M-step. The loss around the best joint angle is lopsided (on the
-# fridge the depth term rises faster past it than before it), so the noise of single-view
-# steps biases where the motion settles; averaging 4 views lowered the final angle error on
-# all four seeds of the quick fridge (docs/training.md) for about the cost of one E-step.
-M_STEP_VIEWS = 4
-
-
 def phase_at(schedule: str, it: int, interval: int, refine_joint: int) -> str:
     """'E', 'M' (alternation, E first) or 'J' (joint optimisation) at stage-3 iteration `it`."""
     if schedule == "joint":
@@ -266,7 +259,7 @@ class Refine(_Stage):
         return index, self.target_views[index], self._background()
 
     def _motion_step(self, it: int) -> dict[str, float]:
-        """M-step: only the motion trains, under hard assignment, on M_STEP_VIEWS target
+        """M-step: only the motion trains, under hard assignment, on `m_step_views` target
         views.
 
         The Gaussians (geometry, colour, opacity, logits) are held fixed, so the motion alone
@@ -276,22 +269,33 @@ class Refine(_Stage):
         seed (docs/training.md). Holding them also saves the anchor render and the Gaussians'
         backward, and leaves the densification statistics to the E-steps, where
         densification happens."""
-        c, g = self.config, self.gaussians
-        qr, qd = self.motion.motion(1.0)
-        weights = F.one_hot(g.part_ids(), g.num_parts).float()
-        means_d, quats_d = deform(g["means"].detach(), g["quats"].detach(), weights, qr, qd)
-        terms: dict[str, torch.Tensor] = {}
-        for _ in range(M_STEP_VIEWS):
-            _, view, bg = self._target_view()
-            out = render(means_d, quats_d, g["log_scales"].detach(), g["opacity"].detach(),
-                         g.rgb().detach(), view.camera, bg, depth=view.depth is not None)
-            for name, value in _image_terms(out, view, bg, c).items():
-                terms[name] = terms.get(name, 0.0) + value / M_STEP_VIEWS
+        drawn = [self._target_view()[1:] for _ in range(self.config.m_step_views)]
+        terms = self._held_image_terms(self.motion, *zip(*drawn, strict=True))
         check_finite(terms, self.name, it)
         self.motion_optimizer.zero_grad(set_to_none=True)
         sum(terms.values()).backward()
         self.motion_optimizer.step()
         return {k: v.item() for k, v in terms.items()}
+
+    def _held_image_terms(
+        self, motion, views: Sequence[TrainView], backgrounds: Sequence[torch.Tensor],  # noqa: ANN001
+    ) -> dict[str, torch.Tensor]:
+        """Image terms (photometric + depth), averaged over `views`, of the canonical model
+        moved by `motion` under hard (argmax) assignment with every Gaussian parameter held:
+        only `motion` receives gradients. The M-step and the hypothesis scoring both judge a
+        motion this way."""
+        c, g = self.config, self.gaussians
+        qr, qd = motion.motion(1.0)
+        weights = F.one_hot(g.part_ids(), g.num_parts).float()
+        means_d, quats_d = deform(g["means"].detach(), g["quats"].detach(), weights, qr, qd)
+        log_scales, opacity, rgb = g["log_scales"].detach(), g["opacity"].detach(), g.rgb().detach()
+        terms: dict[str, torch.Tensor] = {}
+        for view, bg in zip(views, backgrounds, strict=True):
+            out = render(means_d, quats_d, log_scales, opacity, rgb, view.camera, bg,
+                         depth=view.depth is not None)
+            for name, value in _image_terms(out, view, bg, c).items():
+                terms[name] = terms.get(name, 0.0) + value / len(views)
+        return terms
 
     def _gaussian_step(self, it: int, phase: str) -> dict[str, float]:
         """E-step (motion frozen, soft assignment, part supervision) or a joint-optimisation
@@ -375,18 +379,9 @@ class Refine(_Stage):
         """Photometric + depth loss of the hard-assigned model moved by `candidate`, over (up
         to 8) target training views on a black background: how well a joint hypothesis
         explains the target images. No ground truth is involved."""
-        g, c = self.gaussians, self.config
-        qr, qd = candidate.motion(1.0)
-        weights = F.one_hot(g.part_ids(), g.num_parts).float()
-        means, quats = deform(g["means"].detach(), g["quats"].detach(), weights, qr, qd)
         views = self.target_views[:: max(1, len(self.target_views) // 8)]
-        total = 0.0
-        for view in views:
-            out = render(means, quats, g["log_scales"].detach(), g["opacity"].detach(),
-                         g.rgb().detach(), view.camera, torch.zeros(3),
-                         depth=view.depth is not None)
-            total += float(sum(_image_terms(out, view, torch.zeros(3), c).values()))
-        return total / len(views)
+        terms = self._held_image_terms(candidate, views, [torch.zeros(3)] * len(views))
+        return float(sum(terms.values()))
 
     def state_dict(self) -> dict:
         return {
