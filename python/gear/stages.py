@@ -8,6 +8,7 @@ stage's own torch.Generator, whose state is checkpointed: seeded runs resume ide
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -18,7 +19,7 @@ import torch.nn.functional as F
 from gear.camera import Camera
 from gear.config import TrainConfig
 from gear.em import classify_joints, knn_consistency_loss, region_pseudo_labels, sam_ce_loss
-from gear.kinematics import deform
+from gear.kinematics import deform, quat_angle
 from gear.losses import composite, depth_log_l1, opacity_binarisation, photometric
 from gear.model import Gaussians, nearest_neighbours, render, scene_extent
 
@@ -205,12 +206,13 @@ class Refine(_Stage):
         self._neighbours_generation = -1  # Gaussians.generation the lists were built for
         self._anchor_cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
 
-    def _make_motion_optimizer(self) -> torch.optim.Adam:
-        c = self.config
+    def _make_motion_optimizer(self, motion=None) -> torch.optim.Adam:  # noqa: ANN001
+        """Adam over the rotation and translation halves of `motion` (default: the run's)."""
+        c, motion = self.config, motion if motion is not None else self.motion
         return torch.optim.Adam(
             [
-                {"params": [self.motion.qr], "lr": c.lr_motion_rot},
-                {"params": [self.motion.qd], "lr": c.lr_motion_trans * self.extent},
+                {"params": [motion.qr], "lr": c.lr_motion_rot},
+                {"params": [motion.qd], "lr": c.lr_motion_trans * self.extent},
             ],
             eps=1e-15,
         )
@@ -282,8 +284,8 @@ class Refine(_Stage):
     ) -> dict[str, torch.Tensor]:
         """Image terms (photometric + depth), averaged over `views`, of the canonical model
         moved by `motion` under hard (argmax) assignment with every Gaussian parameter held:
-        only `motion` receives gradients. The M-step and the hypothesis scoring both judge a
-        motion this way."""
+        only `motion` receives gradients. The M-step, the hypothesis scoring and its
+        fine-tuning all judge a motion this way."""
         c, g = self.config, self.gaussians
         qr, qd = motion.motion(1.0)
         weights = F.one_hot(g.part_ids(), g.num_parts).float()
@@ -361,27 +363,68 @@ class Refine(_Stage):
         return terms
 
     def classify(self) -> None:
-        """Revolute joints below ε become prismatic; the motion optimizer is rebuilt."""
+        """Revolute joints below ε become prismatic; the motion optimizer is rebuilt. The
+        log event lists every scored reading's loss (in scoring order) and, per movable
+        part, the joint type and angle that came out."""
         c = self.config
         resolve = c.resolve_ambiguous_joints
+        scores: list[float] = []
+
+        def score(candidate) -> float:  # noqa: ANN001 (PartMotion)
+            scores.append(self.motion_loss(candidate))
+            return scores[-1]
+
         switched = classify_joints(
             self.motion,
             eps_deg=c.revolute_eps_deg,
-            score=self.motion_loss if resolve else None,
+            score=score if resolve else None,
             init_motions=self.init_motions if resolve and self.init_motions else None,
         )
-        self.events.append({"event": "joint_classification", "prismatic": list(switched)})
+        qr, _ = self.motion.motion()
+        angles = [round(math.degrees(float(a)), 3) for a in quat_angle(qr.detach())[1:]]
+        types = ["prismatic" if p else "revolute" for p in self.motion.prismatic[1:].tolist()]
+        self.events.append({"event": "joint_classification", "prismatic": list(switched),
+                            "scores": scores, "types": types, "angles_deg": angles})
         # Any part below ε may have been rewritten (slide or initial hinge): fresh Adam moments.
         self.motion_optimizer = self._make_motion_optimizer()
 
-    @torch.no_grad()
+    def _scoring_views(self) -> list[TrainView]:
+        """Up to 8 target training views, evenly spaced: the fixed set hypotheses are judged on."""
+        return self.target_views[:: max(1, len(self.target_views) // 8)]
+
     def motion_loss(self, candidate) -> float:  # noqa: ANN001 (PartMotion)
-        """Photometric + depth loss of the hard-assigned model moved by `candidate`, over (up
-        to 8) target training views on a black background: how well a joint hypothesis
-        explains the target images. No ground truth is involved."""
-        views = self.target_views[:: max(1, len(self.target_views) // 8)]
-        terms = self._held_image_terms(candidate, views, [torch.zeros(3)] * len(views))
+        """Photometric + depth loss of the hard-assigned model moved by `candidate`, over the
+        scoring views on a black background, after `classify_tune_steps` motion-only steps
+        on the candidate (tune_motion): how well a joint hypothesis explains the target
+        images once it has had the same short chance to settle as every other one. No
+        ground truth is involved. `candidate` is the caller's copy and is tuned in place."""
+        self.tune_motion(candidate, self.config.classify_tune_steps)
+        views = self._scoring_views()
+        black = [torch.zeros(3)] * len(views)
+        with torch.no_grad():
+            terms = self._held_image_terms(candidate, views, black)
         return float(sum(terms.values()))
+
+    def tune_motion(self, candidate, steps: int) -> None:  # noqa: ANN001 (PartMotion)
+        """`steps` Adam steps on the motion of `candidate` alone (the Gaussians held, hard
+        assignment, as in the M-step), each on `m_step_views` of the scoring views taken in
+        turn, over a black background: deterministic, and the same budget for every joint
+        hypothesis. A fresh optimizer with the M-step's learning rates; `self.motion` and
+        its optimizer are untouched."""
+        if steps <= 0:
+            return
+        optimizer = self._make_motion_optimizer(candidate)
+        views = self._scoring_views()
+        per_step = min(self.config.m_step_views, len(views))
+        black = [torch.zeros(3)] * per_step
+        with torch.enable_grad():
+            for step in range(steps):
+                batch = [views[(step * per_step + j) % len(views)] for j in range(per_step)]
+                terms = self._held_image_terms(candidate, batch, black)
+                check_finite(terms, f"{self.name} joint scoring", step)
+                optimizer.zero_grad(set_to_none=True)
+                sum(terms.values()).backward()
+                optimizer.step()
 
     def state_dict(self) -> dict:
         return {
