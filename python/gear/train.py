@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from gear import checkpoint
@@ -94,6 +95,36 @@ def initial_gaussians(views: list, config: TrainConfig, seed: int) -> Gaussians:
             pick = rng.choice(len(pts), config.init_max_points, replace=False)
             pts, cols = pts[pick], cols[pick]
     return Gaussians.from_points(pts, cols)
+
+
+# Stage 2 sees only the centres of Gaussians at least this opaque (sigmoid of the opacity
+# logit): a low-opacity floater is a centre with almost no image behind it, and the voxel
+# differences of stage 2 turn such centres into dynamic components, i.e. noise parts. The
+# stage-1 loss binarises opacity (BCE towards 0 or 1), so on a converged model 0.5 splits
+# surface from haze.
+STAGE2_MIN_OPACITY = 0.5
+# ... unless fewer than this fraction of a state's Gaussians pass: a short run (the quick
+# profile's 300 iterations) has not binarised yet (there a median opacity of ~0.2 is surface),
+# and the threshold would leave stage 2 a sparse, biased sample of it.
+STAGE2_MIN_OPAQUE_FRACTION = 0.5
+
+
+def opaque_mask(model: Gaussians) -> np.ndarray:
+    """The Gaussians stage 2 should see: opacity > STAGE2_MIN_OPACITY, or all of them when
+    fewer than STAGE2_MIN_OPAQUE_FRACTION pass."""
+    keep = torch.sigmoid(model["opacity"].detach()).numpy() > STAGE2_MIN_OPACITY
+    return keep if keep.mean() >= STAGE2_MIN_OPAQUE_FRACTION else np.ones_like(keep)
+
+
+def spread_logits(points: np.ndarray, keep: np.ndarray, logits: np.ndarray) -> np.ndarray:
+    """Part logits for every point [N, K] from those of the kept points `logits` [keep.sum(),
+    K]: a dropped point takes the logits of its nearest kept point."""
+    out = np.empty((len(points), logits.shape[1]), dtype=logits.dtype)
+    out[keep] = logits
+    if (~keep).any():
+        _, nearest = cKDTree(points[keep]).query(points[~keep], k=1)
+        out[~keep] = logits[nearest]
+    return out
 
 
 def surface_test(model: Gaussians, views: list[TrainView], max_views: int = 8) -> SurfaceTest:
@@ -242,18 +273,23 @@ class Trainer:
 
         c = self.config
         t0 = time.perf_counter()
+        centres = {s: self.models[s]["means"].detach().numpy() for s in STATES}
+        keep = {s: opaque_mask(self.models[s]) for s in STATES}
         init = coarse_init(
-            self.models["start"]["means"].detach().numpy(),
-            self.models["end"]["means"].detach().numpy(),
+            centres["start"][keep["start"]],
+            centres["end"][keep["end"]],
             c.num_parts,
             c.voxel_size,
             on_target_surface=lambda state: surface_test(self.models[state], self.views[state]),
         )
+        canonical = init.canonical
+        logits = spread_logits(centres[canonical], keep[canonical],
+                               np.asarray(init.logits, dtype=np.float32))
         self.timings["stage2"] = time.perf_counter() - t0
         self.coarse = {
             "canonical": init.canonical,
             "num_parts": int(init.num_parts),
-            "logits": torch.as_tensor(np.asarray(init.logits, dtype=np.float32)),
+            "logits": torch.as_tensor(logits),
             "motions": [(np.asarray(r), np.asarray(t)) for r, t in init.motions],
             # per movable part: its motion first, then near-ties of the other joint kind
             "candidates": [[(np.asarray(r), np.asarray(t)) for r, t in part]
@@ -261,6 +297,9 @@ class Trainer:
             "voxel_size": init.voxel_size,
             "notes": list(init.notes),
         }
+        for state in STATES:
+            self.log.say(f"stage2: {int(keep[state].sum())} of {len(keep[state])} {state} "
+                         f"centres (opacity > {STAGE2_MIN_OPACITY} unless too few pass)")
         for note in init.notes:
             self.log.say(f"stage2: {note}")
         self.log.say(f"stage2: canonical state '{init.canonical}', {init.num_parts} part(s)")
