@@ -180,3 +180,30 @@ def test_classify_joints_rescores_parts_stage2_was_torn_on():
     assert classify_joints(motion, score=score, init_motions=[[fold]]) == []
     assert classify_joints(motion, init_motions=[[fold, (np.eye(3), slide_t)]]) == []
     assert not bool(motion.prismatic[1])
+
+
+def test_small_hinge_must_beat_its_slide_clearly():
+    """A 2-degree hinge scored 0.5 % below the slide readings is a near-tie (a hinge contains
+    the slide, so it can always match it): with the 1 % prior of the ε rule the slide wins;
+    scored 5 % below, the hinge is kept; a hinge beyond ε is never penalised."""
+    small = hinge([0, 0, 1], [0.5, 0, 0], 2.0)
+
+    def score_with(lead: float):
+        def score(candidate):
+            return 1.0 - lead if not bool(candidate.prismatic[1]) else 1.0
+        return score
+
+    for lead, margin, prismatic in [(0.005, 0.0, False), (0.005, 0.01, True),
+                                    (0.05, 0.01, False)]:
+        motion = PartMotion.from_rt([small])
+        switched = classify_joints(motion, score=score_with(lead), init_motions=[[small]],
+                                   small_hinge_margin=margin)
+        assert bool(motion.prismatic[1]) is prismatic, (lead, margin)
+        assert switched == ([1] if prismatic else [])
+    # Beyond ε (a 60-degree hinge with a stage-2 slide tie) the margin does not apply.
+    wide = hinge([0, 0, 1], [0.5, 0, 0], 60.0)
+    motion = PartMotion.from_rt([wide])
+    tie = [[wide, (np.eye(3), [0.2, 0, 0])]]
+    classify_joints(motion, score=score_with(0.005), init_motions=tie, small_hinge_margin=0.01)
+    assert not bool(motion.prismatic[1])
+    assert motion.joints(np.zeros(3))[0]["angle_deg"] == pytest.approx(60.0, abs=1e-3)

@@ -51,6 +51,12 @@ class TrainConfig:
     # 2.6° hinge beat the true slide by 0.001); the same short budget for every reading lets
     # each settle first, so the comparison is fair. 0 = score the readings as they are.
     classify_tune_steps: int = 30
+    # A hinge reading below ε must beat the other readings by this fraction of its loss to be
+    # kept: the paper's ε rule as a prior. A hinge contains the slide, so tuned it matches the
+    # slide and wins near-ties by noise (quick drawer_cabinet, 64 px: a 0.4-0.7° hinge beat
+    # the true slide by 0.06-0.3 % of the loss on three seeds); a real hinge's lead over its
+    # slide is tens of percent (fridge door: 60 %).
+    small_hinge_margin: float = 0.01
     em_refine_joint_iterations: int = 10_000  # em-refine: joint optimisation before EM starts
 
     # --- Table S1: loss weights ---
@@ -115,6 +121,8 @@ class TrainConfig:
                      "m_step_views"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.small_hinge_margin >= 0:
+            raise ValueError(f"small_hinge_margin must be >= 0, got {self.small_hinge_margin}")
         if self.classify_tune_steps < 0:
             raise ValueError(f"classify_tune_steps must be >= 0, got {self.classify_tune_steps}")
 

@@ -147,11 +147,28 @@ def _as_candidates(entry: Motion | Sequence[Motion]) -> list[Motion]:
     return [entry] if bare else list(entry)
 
 
+def _small_hinge_penalised(
+    score: Callable[[PartMotion], float], k: int, eps: float, margin: float
+) -> Callable[[PartMotion], float]:
+    """`score`, raised by `margin` x |score| for a reading of part k that is a hinge turning
+    less than `eps` radians once scored (the scorer may tune the candidate first)."""
+
+    def penalised(candidate: PartMotion) -> float:
+        value = float(score(candidate))
+        qr, _ = candidate.motion()
+        if not bool(candidate.prismatic[k]) and float(quat_angle(qr[k].detach())) < eps:
+            value += margin * abs(value)
+        return value
+
+    return penalised
+
+
 def classify_joints(
     motion: PartMotion,
     eps_deg: float = 10.0,
     score: Callable[[PartMotion], float] | None = None,
     init_motions: Sequence[Motion | Sequence[Motion]] | None = None,
+    small_hinge_margin: float = 0.0,
 ) -> list[int]:
     """Turns revolute parts whose rotation is below `eps_deg` into prismatic ones.
 
@@ -161,8 +178,11 @@ def classify_joints(
     (`init_motions[k-1]`: an (R, t) or a list of them, e.g. CoarseInit.candidates). An
     ambiguous part's readings — its current motion, its slide and the stage-2 guesses — are
     all scored and the lowest loss wins. This rescues hinges that stalled at a small angle,
-    e.g. a door opened 180 degrees. Returns the parts made prismatic; the caller rebuilds the
-    optimizer state of `motion`.
+    e.g. a door opened 180 degrees. A hinge reading that turns less than `eps_deg` keeps the
+    paper's rule as a prior: its loss counts `small_hinge_margin` (relative) higher, so it
+    wins only when the images prefer it clearly. A hinge contains the slide (angle 0), so
+    tuned by the scorer it can always match the slide; on near-ties it would win by noise.
+    Returns the parts made prismatic; the caller rebuilds the optimizer state of `motion`.
     """
     if init_motions is not None and len(init_motions) != motion.num_parts - 1:
         raise ValueError(
@@ -181,7 +201,10 @@ def classify_joints(
             if small:
                 motion.set_prismatic(k)
         elif small or len(extra) > 1:
-            resolve_ambiguous_joint(motion, k, score, extra)
+            eps = math.radians(eps_deg)
+            resolve_ambiguous_joint(
+                motion, k, _small_hinge_penalised(score, k, eps, small_hinge_margin), extra
+            )
         if bool(motion.prismatic[k]):
             switched.append(k)
     return switched

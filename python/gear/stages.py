@@ -379,6 +379,7 @@ class Refine(_Stage):
             eps_deg=c.revolute_eps_deg,
             score=score if resolve else None,
             init_motions=self.init_motions if resolve and self.init_motions else None,
+            small_hinge_margin=c.small_hinge_margin,
         )
         qr, _ = self.motion.motion()
         angles = [round(math.degrees(float(a)), 3) for a in quat_angle(qr.detach())[1:]]
