@@ -87,14 +87,14 @@ def rot_z(deg: float) -> np.ndarray:
 def scoring_case(tune_steps: int) -> tuple[Refine, list]:
     """The incumbent: a 5° hinge (below ε, so ambiguous) that puts the plank's centre exactly
     where the true slide does, i.e. slightly off (tilted). Stage 2's guess: the right
-    direction but 25 % too far."""
+    direction but 25 % too far. Without the small-hinge prior: this is about the tuning."""
     g = wall_and_plank()
     canonical = views_of(g, PartMotion(2))
     target = views_of(g, PartMotion.from_rt([(np.eye(3), PULL)]))
     centre = g["means"][12:].mean(0).detach().numpy().astype(np.float64)
     rot = rot_z(5.0)
     incumbent = PartMotion.from_rt([(rot, centre + PULL - rot @ centre)])
-    config = make_config("quick", dict(classify_tune_steps=tune_steps, m_step_views=2))
+    config = make_config("quick", dict(classify_tune_steps=tune_steps, small_hinge_margin=0.0))
     stage = Refine(g, incumbent, g.clone(), canonical, target, config, seed=0,
                    init_motions=[[(np.eye(3), 1.25 * PULL)]])
     return stage, [(np.eye(3), 1.25 * PULL)]
@@ -129,7 +129,7 @@ def test_tuning_lowers_the_score_of_the_correct_reading_and_leaves_the_run_alone
     # the tuned copy moved towards the true pull (it started 25 % too far) and stayed a slide
     err = [np.linalg.norm(dq_to_rt(*(x[1].detach() for x in m.motion()))[1].numpy() - PULL)
            for m in (slide, tuned)]
-    assert err[1] < 0.5 * err[0]
+    assert err[1] < 0.75 * err[0]
     assert float(quat_angle(tuned.motion()[0][1].detach())) == 0.0
     # the run itself is untouched: its motion, its random draws, its Gaussians
     assert torch.equal(stage.motion.qd.detach(), before_qd)

@@ -408,20 +408,19 @@ class Refine(_Stage):
 
     def tune_motion(self, candidate, steps: int) -> None:  # noqa: ANN001 (PartMotion)
         """`steps` Adam steps on the motion of `candidate` alone (the Gaussians held, hard
-        assignment, as in the M-step), each on `m_step_views` of the scoring views taken in
-        turn, over a black background: deterministic, and the same budget for every joint
-        hypothesis. A fresh optimizer with the M-step's learning rates; `self.motion` and
-        its optimizer are untouched."""
+        assignment, as in the M-step), each on the next of the scoring views in turn over a
+        black background: deterministic, and the same budget for every joint hypothesis. One
+        view per step keeps it cheap (a few readings x 30 renders); Adam's moments average
+        over the cycle. A fresh optimizer with the M-step's learning rates; `self.motion`
+        and its optimizer are untouched."""
         if steps <= 0:
             return
         optimizer = self._make_motion_optimizer(candidate)
         views = self._scoring_views()
-        per_step = min(self.config.m_step_views, len(views))
-        black = [torch.zeros(3)] * per_step
         with torch.enable_grad():
             for step in range(steps):
-                batch = [views[(step * per_step + j) % len(views)] for j in range(per_step)]
-                terms = self._held_image_terms(candidate, batch, black)
+                terms = self._held_image_terms(candidate, [views[step % len(views)]],
+                                               [torch.zeros(3)])
                 check_finite(terms, f"{self.name} joint scoring", step)
                 optimizer.zero_grad(set_to_none=True)
                 sum(terms.values()).backward()
