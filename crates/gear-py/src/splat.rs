@@ -220,8 +220,8 @@ fn forward_result<'py, T: Element + Send>(
 }
 
 /// Declares a forward binding with the rasterizer contract's signature: it checks the
-/// arguments and hands them to `forward_result` with `$render` (a [`Render`]). One declaration serves the GPU and the reference binding, so their signatures cannot
-/// drift apart.
+/// arguments and hands them to `forward_result` with `$render` (a [`Render`]). One declaration
+/// serves the GPU and the reference binding, so their signatures cannot drift apart.
 macro_rules! forward_binding {
     ($(#[$doc:meta])* $name:ident => $render:path) => {
         $(#[$doc])*
