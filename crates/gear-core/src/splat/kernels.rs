@@ -47,11 +47,15 @@ pub const SORT_WG: u32 = 64;
 /// Threads per workgroup of the other 1D kernels.
 pub const WG: u32 = 256;
 
-/// One WGSL source from files of shaders/splat/ (names without `.wgsl`), in order: a file may
-/// use what the ones before it declare.
+/// One WGSL source from files of shaders/splat/ (names without `.wgsl`), in order after
+/// grid.wgsl (indices in the folded dispatch grid, which every kernel needs): a file may use
+/// what the ones before it declare.
 macro_rules! splat_source {
     ($($file:literal),+ $(,)?) => {
-        concat!($(include_str!(concat!("../shaders/splat/", $file, ".wgsl"))),+)
+        concat!(
+            include_str!("../shaders/splat/grid.wgsl"),
+            $(include_str!(concat!("../shaders/splat/", $file, ".wgsl"))),+
+        )
     };
 }
 

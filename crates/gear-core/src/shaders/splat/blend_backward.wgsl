@@ -137,7 +137,7 @@ fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
 ) {
-    let tile = wg.x + wg.y * nwg.x;
+    let tile = workgroup_index(wg, nwg);
     if tile >= frame.tiles_x * frame.tiles_y {
         return;
     }

@@ -32,8 +32,3 @@ fn is_finite(x: f32) -> bool {
 fn background(c: u32) -> f32 {
     return frame.background[c / 4u][c % 4u];
 }
-
-// Index of a 1D thread in a grid folded into 2D (see gpu::workgroup_grid).
-fn thread_index(gid: vec3<u32>, nwg: vec3<u32>, wg_size: u32) -> u32 {
-    return gid.x + gid.y * nwg.x * wg_size;
-}
