@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,12 +105,3 @@ def assert_images_close(got: Tensor, want: Tensor, name: str, atol: float = 1e-4
         f"{name}: max abs error {err.max().item():.2e}, {outliers} values over {atol:g} "
         f"({allowed} allowed)"
     )
-
-
-def one_torch_thread() -> Iterator[None]:
-    """Runs a test module with one torch thread: its tensors are small, and on a shared
-    2-core machine torch's thread pool makes them many times slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)

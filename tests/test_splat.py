@@ -21,13 +21,11 @@ from splat_scenes import (
     assert_images_close,
     camera,
     core_args,
-    one_torch_thread,
     random_scene,
     relative_l2,
 )
 
 BACKGROUND = (0.1, 0.3, 0.6)
-_threads = pytest.fixture(autouse=True, scope="module")(one_torch_thread)
 
 
 def background(channels: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:

@@ -18,14 +18,12 @@ from splat_scenes import (
     assert_images_close,
     camera,
     core_args,
-    one_torch_thread,
     random_scene,
     relative_l2,
 )
 
 IDENTITY = (1.0, 0.0, 0.0, 0.0)
 BACKGROUND = (0.25, 0.5, 0.75)
-_threads = pytest.fixture(autouse=True, scope="module")(one_torch_thread)
 
 
 def axis_camera(width: int = 17, height: int = 13) -> splat.Camera:
@@ -67,6 +65,20 @@ def render(
         assert torch.isfinite(grad).all(), f"non-finite d{name}"
     assert (out.alpha >= 0).all() and (out.alpha <= 1).all()
     return out, grads
+
+
+def assert_matches_dense(
+    scene: Scene, cam: splat.Camera, out: splat.RenderOutput, grads: list[torch.Tensor]
+) -> tuple[splat.RenderOutput, list[torch.Tensor]]:
+    """The GPU's `render(scene, cam)` against the float64 dense reference's: images within
+    assert_images_close, gradients within 1e-3 relative L2. Returns the reference's."""
+    want, want_grads = render(scene, cam, dense=True)
+    for name in ("features", "alpha", "depth"):
+        assert_images_close(getattr(out, name), getattr(want, name).detach(), name)
+    for name, a, b in zip(ARRAYS, grads, want_grads, strict=True):
+        rel = relative_l2(a, b)
+        assert rel <= 1e-3, f"GPU d{name}: relative L2 error {rel:.2e}"
+    return want, want_grads
 
 
 def assert_culled(scene: Scene, culled: list[int], cam: splat.Camera) -> None:
@@ -172,12 +184,7 @@ def test_ten_thousand_gaussians_on_one_pixel():
     )
     out, grads = render(scene, cam)
     assert out.alpha.max().item() <= 1 - 1e-4 + 1e-6
-    want, want_grads = render(scene, cam, dense=True)
-    for name in ("features", "alpha", "depth"):
-        assert_images_close(getattr(out, name), getattr(want, name).detach(), name)
-    for name, a, b in zip(ARRAYS, grads, want_grads, strict=True):
-        rel = relative_l2(a, b)
-        assert rel <= 1e-3, f"d{name}: relative L2 error {rel:.2e}"
+    assert_matches_dense(scene, cam, out, grads)
     contributing = (grads[4] != 0).any(1)
     assert 0 < contributing.sum() < n // 5
 
@@ -239,12 +246,7 @@ def test_adversarial_scene_matches_the_references():
     cam = axis_camera()
     scene = adversarial_scene()
     out, grads = render(scene, cam)
-    want, want_grads = render(scene, cam, dense=True)
-    for name in ("features", "alpha", "depth"):
-        assert_images_close(getattr(out, name), getattr(want, name).detach(), name)
-    for name, a, b in zip(ARRAYS, grads, want_grads, strict=True):
-        rel = relative_l2(a, b)
-        assert rel <= 1e-3, f"GPU d{name}: relative L2 error {rel:.2e}"
+    want, want_grads = assert_matches_dense(scene, cam, out, grads)
 
     args = core_args(scene, cam, torch.tensor(BACKGROUND), True)
     *images, state = _core.reference_forward(*args)

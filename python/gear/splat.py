@@ -56,16 +56,10 @@ def _check_tensor(value: Any, name: str, shape: tuple[int | str, ...]) -> Tensor
     return value
 
 
-def _check_inputs(
-    means: Tensor,
-    quats: Tensor,
-    log_scales: Tensor,
-    opacity_logits: Tensor,
-    features: Tensor,
-    camera: Camera,
-    background: Tensor | None,
-) -> Tensor:
-    """Validates every argument; returns the background (zeros when None)."""
+def _check_inputs(arrays: tuple[Tensor, ...], camera: Camera, background: Tensor | None) -> Tensor:
+    """Validates every argument (`arrays`: means, quats, log_scales, opacity_logits,
+    features); returns the background (zeros when None)."""
+    means, quats, log_scales, opacity_logits, features = arrays
     n = _check_tensor(means, "means", ("N", 3)).shape[0]
     _check_tensor(quats, "quats", (n, 4))
     _check_tensor(log_scales, "log_scales", (n, 3))
@@ -148,10 +142,7 @@ def rasterize(
     [N,C] (1 <= C <= 64), background [C] (None: zeros): float32 CPU tensors. Gradients flow to
     the five Gaussian arrays that require them.
     """
-    background = _check_inputs(
-        means, quats, log_scales, opacity_logits, features, camera, background
-    )
-    outputs = _Rasterize.apply(
-        means, quats, log_scales, opacity_logits, features, camera, background, bool(depth)
-    )
+    arrays = (means, quats, log_scales, opacity_logits, features)
+    background = _check_inputs(arrays, camera, background)
+    outputs = _Rasterize.apply(*arrays, camera, background, bool(depth))
     return RenderOutput(outputs[0], outputs[1], outputs[2] if depth else None)

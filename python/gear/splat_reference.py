@@ -227,16 +227,12 @@ def _blend(
 
 
 def _prepare(
-    means: Tensor,
-    quats: Tensor,
-    log_scales: Tensor,
-    opacity_logits: Tensor,
-    features: Tensor,
-    camera: Camera,
-    background: Tensor | None,
+    arrays: tuple[Tensor, ...], camera: Camera, background: Tensor | None
 ) -> tuple[Projected, Tensor]:
-    """Projection, depth order (stable: ties keep index order) and the background."""
-    proj = project(means, quats, log_scales, opacity_logits, features, camera)
+    """Projection of `arrays` (means, quats, log_scales, opacity_logits, features), depth order
+    (stable: ties keep index order) and the background."""
+    proj = project(*arrays, camera)
+    features = arrays[4]
     order = torch.argsort(proj.depth.detach(), stable=True)
     proj = proj.select(order)
     if background is None:
@@ -255,9 +251,8 @@ def rasterize_dense(
     depth: bool = False,
 ) -> RenderOutput:
     """Every Gaussian against every pixel: memory grows as H·W·N, for small scenes."""
-    proj, background = _prepare(
-        means, quats, log_scales, opacity_logits, features, camera, background
-    )
+    arrays = (means, quats, log_scales, opacity_logits, features)
+    proj, background = _prepare(arrays, camera, background)
     h, w = camera.height, camera.width
     rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
     image, alpha, depth_image = _blend(proj, cols.reshape(-1), rows.reshape(-1), background)
@@ -285,9 +280,8 @@ def rasterize_tiled(
     than 32, 6x faster than 64): a pixel only meets the Gaussians of its own tile."""
     if block <= 0 or block % TILE:
         raise ValueError(f"block must be a positive multiple of {TILE}, got {block}")
-    proj, background = _prepare(
-        means, quats, log_scales, opacity_logits, features, camera, background
-    )
+    arrays = (means, quats, log_scales, opacity_logits, features)
+    proj, background = _prepare(arrays, camera, background)
     h, w = camera.height, camera.width
     per_tile = block // TILE
     x0, x1, y0, y1 = proj.tiles.unbind(-1)

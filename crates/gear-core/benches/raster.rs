@@ -12,20 +12,11 @@
 use std::time::Instant;
 
 use gear_core::splat::{
-    backward, forward, Accumulation, Camera, Gaussians, OutputGradients, RenderOptions,
+    backward, forward, Accumulation, Camera, OutputGradients, OwnedGaussians, RenderOptions,
 };
 
 const CHANNELS: usize = 3;
 const DEFAULT_CASES: [(usize, u32); 3] = [(20_000, 128), (100_000, 256), (8_000, 64)];
-
-/// Owned arrays of one random scene.
-struct Scene {
-    means: Vec<[f32; 3]>,
-    quats: Vec<[f32; 4]>,
-    log_scales: Vec<[f32; 3]>,
-    opacity_logits: Vec<f32>,
-    features: Vec<f32>,
-}
 
 /// Standard normal sample (Box-Muller).
 fn normal(rng: &mut fastrand::Rng) -> f32 {
@@ -34,42 +25,23 @@ fn normal(rng: &mut fastrand::Rng) -> f32 {
     (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * v).cos()
 }
 
-impl Scene {
-    /// `n` Gaussians filling a unit ball, sized so `n` disks cover its silhouette ~4 times.
-    fn ball(n: usize, seed: u64) -> Self {
-        let mut rng = fastrand::Rng::with_seed(seed);
-        let radius = (2.0 / (n as f32).sqrt()).ln();
-        let mut s = Scene {
-            means: Vec::with_capacity(n),
-            quats: Vec::with_capacity(n),
-            log_scales: Vec::with_capacity(n),
-            opacity_logits: Vec::with_capacity(n),
-            features: Vec::with_capacity(n * CHANNELS),
-        };
-        for _ in 0..n {
-            let d = [normal(&mut rng), normal(&mut rng), normal(&mut rng)];
-            let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-9);
-            let r = rng.f32().cbrt() / len;
-            s.means.push([d[0] * r, d[1] * r, d[2] * r]);
-            s.quats.push([0.0; 4].map(|_| normal(&mut rng)));
-            s.log_scales
-                .push([0.0; 3].map(|_| radius + 0.3 * normal(&mut rng)));
-            s.opacity_logits.push(normal(&mut rng));
-            s.features.extend((0..CHANNELS).map(|_| rng.f32()));
-        }
-        s
+/// `n` Gaussians filling a unit ball, sized so `n` disks cover its silhouette ~4 times.
+fn ball(n: usize, seed: u64) -> OwnedGaussians {
+    let mut rng = fastrand::Rng::with_seed(seed);
+    let radius = (2.0 / (n as f32).sqrt()).ln();
+    let mut s = OwnedGaussians::new(CHANNELS);
+    for _ in 0..n {
+        let d = [normal(&mut rng), normal(&mut rng), normal(&mut rng)];
+        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-9);
+        let r = rng.f32().cbrt() / len;
+        s.means.push([d[0] * r, d[1] * r, d[2] * r]);
+        s.quats.push([0.0; 4].map(|_| normal(&mut rng)));
+        s.log_scales
+            .push([0.0; 3].map(|_| radius + 0.3 * normal(&mut rng)));
+        s.opacity_logits.push(normal(&mut rng));
+        s.features.extend((0..CHANNELS).map(|_| rng.f32()));
     }
-
-    fn view(&self) -> Gaussians<'_> {
-        Gaussians {
-            means: &self.means,
-            quats: &self.quats,
-            log_scales: &self.log_scales,
-            opacity_logits: &self.opacity_logits,
-            features: &self.features,
-            channels: CHANNELS,
-        }
-    }
+    s
 }
 
 /// A square camera 3.5 units from the ball's centre, slightly above it, looking at it.
@@ -126,7 +98,7 @@ struct Timing {
 
 /// Times `repeats` runs (after one warm-up run).
 fn time(n: usize, size: u32, repeats: usize) -> Timing {
-    let scene = Scene::ball(n, 0);
+    let scene = ball(n, 0);
     let cam = camera(size);
     let options = RenderOptions {
         depth: true,

@@ -1,7 +1,7 @@
 //! KNN against brute force: random, duplicate and collinear sets, self-exclusion, external
 //! queries, and the error cases.
 
-use gear_core::knn::{knn, Queries};
+use gear_core::knn::{knn, Neighbours, Queries};
 use gear_core::GearError;
 
 fn random_points(rng: &mut fastrand::Rng, n: usize, scale: f32) -> Vec<[f32; 3]> {
@@ -17,10 +17,19 @@ fn dist(a: [f32; 3], b: [f32; 3]) -> f64 {
         .sqrt()
 }
 
-/// Checks one result row against brute force: distinct valid indices (never `skip`), each at
-/// the distance reported, sorted, and the reported distances equal to the true k smallest.
-fn check_row(points: &[[f32; 3]], q: [f32; 3], skip: Option<usize>, idx: &[i64], d: &[f32]) {
-    let k = idx.len();
+/// Checks row `row` of `found`, the neighbours of `q`, against brute force: distinct valid
+/// indices (never `skip`), each at the distance reported, sorted, and the reported distances
+/// equal to the true k smallest.
+fn check_row(
+    points: &[[f32; 3]],
+    q: [f32; 3],
+    skip: Option<usize>,
+    found: &Neighbours,
+    row: usize,
+) {
+    let k = found.k;
+    let idx = &found.indices[row * k..(row + 1) * k];
+    let d = &found.distances[row * k..(row + 1) * k];
     let mut truth: Vec<f64> = (0..points.len())
         .filter(|&i| Some(i) != skip)
         .map(|i| dist(points[i], q))
@@ -52,14 +61,7 @@ fn check_self(points: &[[f32; 3]], k: usize) {
     let found = knn(points, Queries::SelfExcluded, k).unwrap();
     assert_eq!(found.len(), points.len());
     for (i, &p) in points.iter().enumerate() {
-        let row = i * k..(i + 1) * k;
-        check_row(
-            points,
-            p,
-            Some(i),
-            &found.indices[row.clone()],
-            &found.distances[row],
-        );
+        check_row(points, p, Some(i), &found, i);
     }
 }
 
@@ -85,14 +87,7 @@ fn external_queries_match_brute_force() {
         let found = knn(&points, Queries::Points(&queries), k).unwrap();
         assert_eq!(found.len(), queries.len());
         for (i, &q) in queries.iter().enumerate() {
-            let row = i * k..(i + 1) * k;
-            check_row(
-                &points,
-                q,
-                None,
-                &found.indices[row.clone()],
-                &found.distances[row],
-            );
+            check_row(&points, q, None, &found, i);
         }
     }
 }
@@ -104,14 +99,7 @@ fn deep_tree_in_parallel_matches_brute_force_on_a_sample() {
     let k = 16;
     let found = knn(&points, Queries::SelfExcluded, k).unwrap();
     for i in (0..points.len()).step_by(97) {
-        let row = i * k..(i + 1) * k;
-        check_row(
-            &points,
-            points[i],
-            Some(i),
-            &found.indices[row.clone()],
-            &found.distances[row],
-        );
+        check_row(&points, points[i], Some(i), &found, i);
     }
 }
 

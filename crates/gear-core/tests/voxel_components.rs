@@ -81,17 +81,12 @@ fn random_grid(rng: &mut fastrand::Rng, shape: [usize; 3], fill: f32) -> Vec<boo
         .collect()
 }
 
-#[test]
-fn random_grids_match_flood_fill() {
-    let mut rng = fastrand::Rng::with_seed(7);
-    for shape in [
-        [7, 9, 11],
-        [20, 17, 13],
-        [1, 30, 70],
-        [33, 2, 1],
-        [5, 5, 130],
-    ] {
-        for fill in [0.03, 0.1, 0.3, 0.6] {
+/// Random grids (seeded with `seed`) of each shape at each fill fraction against flood fill,
+/// in both connectivities.
+fn check_random_grids(seed: u64, shapes: &[[usize; 3]], fills: &[f32]) {
+    let mut rng = fastrand::Rng::with_seed(seed);
+    for &shape in shapes {
+        for &fill in fills {
             let occ = random_grid(&mut rng, shape, fill);
             check(&occ, shape, Connectivity::TwentySix);
             check(&occ, shape, Connectivity::Six);
@@ -100,26 +95,26 @@ fn random_grids_match_flood_fill() {
 }
 
 #[test]
+fn random_grids_match_flood_fill() {
+    let shapes = [
+        [7, 9, 11],
+        [20, 17, 13],
+        [1, 30, 70],
+        [33, 2, 1],
+        [5, 5, 130],
+    ];
+    check_random_grids(7, &shapes, &[0.03, 0.1, 0.3, 0.6]);
+}
+
+#[test]
 fn grid_large_enough_for_parallel_slabs_matches_flood_fill() {
-    let mut rng = fastrand::Rng::with_seed(8);
-    let shape = [40, 24, 70];
-    for fill in [0.08, 0.25] {
-        let occ = random_grid(&mut rng, shape, fill);
-        check(&occ, shape, Connectivity::TwentySix);
-        check(&occ, shape, Connectivity::Six);
-    }
+    check_random_grids(8, &[[40, 24, 70]], &[0.08, 0.25]);
 }
 
 #[test]
 fn long_lines_joined_by_sweeping_match_flood_fill() {
     // Lines longer than 4096 cells are not indexed cell by cell; the sweep joins them.
-    let mut rng = fastrand::Rng::with_seed(10);
-    let shape = [4, 3, 5000];
-    for fill in [0.05, 0.4] {
-        let occ = random_grid(&mut rng, shape, fill);
-        check(&occ, shape, Connectivity::TwentySix);
-        check(&occ, shape, Connectivity::Six);
-    }
+    check_random_grids(10, &[[4, 3, 5000]], &[0.05, 0.4]);
 }
 
 #[test]

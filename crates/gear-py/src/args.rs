@@ -23,13 +23,35 @@ fn describe(shape: &[Dim]) -> String {
     format!("[{}]", parts.join(", "))
 }
 
-/// A read-only view of `obj` as a C-contiguous array of `T` with the expected `shape`.
-fn typed_array<'py, T: numpy::Element>(
+/// The numpy element types the bindings take, with their dtype names (for messages).
+pub trait Dtype: numpy::Element {
+    const NAME: &'static str;
+}
+
+impl Dtype for f32 {
+    const NAME: &'static str = "float32";
+}
+
+impl Dtype for f64 {
+    const NAME: &'static str = "float64";
+}
+
+impl Dtype for i64 {
+    const NAME: &'static str = "int64";
+}
+
+impl Dtype for bool {
+    const NAME: &'static str = "bool";
+}
+
+/// A read-only view of `obj` as a C-contiguous numpy array of `T` with the expected `shape`,
+/// or an error naming the argument `name`.
+pub fn array<'py, T: Dtype>(
     obj: &Bound<'py, PyAny>,
     name: &str,
-    dtype: &str,
     shape: &[Dim],
 ) -> PyResult<PyReadonlyArrayDyn<'py, T>> {
+    let dtype = T::NAME;
     let expected = describe(shape);
     let Ok(arr) = obj.cast::<PyArrayDyn<T>>() else {
         let got = obj
@@ -57,36 +79,4 @@ fn typed_array<'py, T: numpy::Element>(
         )));
     }
     Ok(arr.readonly())
-}
-
-pub fn f32_array<'py>(
-    obj: &Bound<'py, PyAny>,
-    name: &str,
-    shape: &[Dim],
-) -> PyResult<PyReadonlyArrayDyn<'py, f32>> {
-    typed_array::<f32>(obj, name, "float32", shape)
-}
-
-pub fn i64_array<'py>(
-    obj: &Bound<'py, PyAny>,
-    name: &str,
-    shape: &[Dim],
-) -> PyResult<PyReadonlyArrayDyn<'py, i64>> {
-    typed_array::<i64>(obj, name, "int64", shape)
-}
-
-pub fn bool_array<'py>(
-    obj: &Bound<'py, PyAny>,
-    name: &str,
-    shape: &[Dim],
-) -> PyResult<PyReadonlyArrayDyn<'py, bool>> {
-    typed_array::<bool>(obj, name, "bool", shape)
-}
-
-pub fn f64_array<'py>(
-    obj: &Bound<'py, PyAny>,
-    name: &str,
-    shape: &[Dim],
-) -> PyResult<PyReadonlyArrayDyn<'py, f64>> {
-    typed_array::<f64>(obj, name, "float64", shape)
 }

@@ -10,7 +10,7 @@ use numpy::{IntoPyArray, PyArray1, PyArrayDyn, PyArrayMethods, PyUntypedArrayMet
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use crate::args::{bool_array, f32_array, i64_array, Dim};
+use crate::args::{array, Dim};
 use crate::errors::guarded;
 
 const POINTS: [Dim; 2] = [Dim::Any("N"), Dim::Fixed(3)];
@@ -32,9 +32,9 @@ fn knn<'py>(
 ) -> PyResult<(Array<'py, i64>, Array<'py, f32>)> {
     let k = usize::try_from(k)
         .map_err(|_| PyValueError::new_err(format!("k: must be at least 1, got {k}")))?;
-    let points = f32_array(points, "points", &POINTS)?;
+    let points = array::<f32>(points, "points", &POINTS)?;
     let queries = queries
-        .map(|q| f32_array(q, "queries", &POINTS))
+        .map(|q| array::<f32>(q, "queries", &POINTS))
         .transpose()?;
     let refs = as_points(points.as_slice()?);
     let qs = match &queries {
@@ -59,7 +59,7 @@ fn grid_enclosing(
     let arrays = point_sets
         .iter()
         .enumerate()
-        .map(|(i, s)| f32_array(s, &format!("point_sets[{i}]"), &POINTS))
+        .map(|(i, s)| array::<f32>(s, &format!("point_sets[{i}]"), &POINTS))
         .collect::<PyResult<Vec<_>>>()?;
     let sets = arrays
         .iter()
@@ -78,10 +78,12 @@ fn voxel_indices<'py>(
     voxel_size: f64,
     shape: [usize; 3],
 ) -> PyResult<Array<'py, i64>> {
-    let grid = GridSpec::new(origin, voxel_size, shape).map_err(crate::errors::to_py)?;
-    let points = f32_array(points, "points", &POINTS)?;
-    let pts = as_points(points.as_slice()?);
-    let idx = guarded(py, move || voxel::voxel_indices(&grid, pts))?;
+    let idx = on_points(
+        py,
+        points,
+        (origin, voxel_size, shape),
+        voxel::voxel_indices,
+    )?;
     let n = idx.len();
     reshape(idx.into_flattened().into_pyarray(py), &[n, 3])
 }
@@ -95,10 +97,12 @@ fn occupancy_dense<'py>(
     voxel_size: f64,
     shape: [usize; 3],
 ) -> PyResult<Array<'py, bool>> {
-    let grid = GridSpec::new(origin, voxel_size, shape).map_err(crate::errors::to_py)?;
-    let points = f32_array(points, "points", &POINTS)?;
-    let pts = as_points(points.as_slice()?);
-    let occ = guarded(py, move || voxel::occupancy_dense(&grid, pts))?;
+    let occ = on_points(
+        py,
+        points,
+        (origin, voxel_size, shape),
+        voxel::occupancy_dense,
+    )?;
     reshape(occ.into_pyarray(py), &shape)
 }
 
@@ -111,10 +115,12 @@ fn occupancy_keys<'py>(
     voxel_size: f64,
     shape: [usize; 3],
 ) -> PyResult<Vector<'py, i64>> {
-    let grid = GridSpec::new(origin, voxel_size, shape).map_err(crate::errors::to_py)?;
-    let points = f32_array(points, "points", &POINTS)?;
-    let pts = as_points(points.as_slice()?);
-    let keys = guarded(py, move || voxel::occupancy_keys(&grid, pts))?;
+    let keys = on_points(
+        py,
+        points,
+        (origin, voxel_size, shape),
+        voxel::occupancy_keys,
+    )?;
     Ok(keys.into_pyarray(py))
 }
 
@@ -137,7 +143,7 @@ fn keys_set_op<'py>(
             )))
         }
     };
-    let (a, b) = (i64_array(a, "a", &KEYS)?, i64_array(b, "b", &KEYS)?);
+    let (a, b) = (array::<i64>(a, "a", &KEYS)?, array::<i64>(b, "b", &KEYS)?);
     let (ka, kb) = (a.as_slice()?, b.as_slice()?);
     let out = guarded(py, move || {
         check_keys(ka, shape, "a")?;
@@ -154,10 +160,9 @@ fn dilate_dense<'py>(
     occ: &Bound<'py, PyAny>,
     radius: usize,
 ) -> PyResult<Array<'py, bool>> {
-    let occ = bool_array(occ, "occ", &GRID)?;
-    let shape = grid_shape(occ.shape());
-    let cells = occ.as_slice()?;
-    let out = guarded(py, move || Ok(voxel::dilate_dense(cells, shape, radius)))?;
+    let (out, shape) = on_dense(py, occ, |cells, shape| {
+        voxel::dilate_dense(cells, shape, radius)
+    })?;
     reshape(out.into_pyarray(py), &shape)
 }
 
@@ -169,12 +174,7 @@ fn dilate_keys<'py>(
     shape: [usize; 3],
     radius: usize,
 ) -> PyResult<Vector<'py, i64>> {
-    let keys = i64_array(keys, "keys", &KEYS)?;
-    let k = keys.as_slice()?;
-    let out = guarded(py, move || {
-        check_keys(k, shape, "keys")?;
-        voxel::dilate_keys(k, shape, radius)
-    })?;
+    let out = on_keys(py, keys, shape, |k| voxel::dilate_keys(k, shape, radius))?;
     Ok(out.into_pyarray(py))
 }
 
@@ -186,10 +186,9 @@ fn components_dense<'py>(
     connectivity: i64,
 ) -> PyResult<(Array<'py, i32>, Vector<'py, i64>)> {
     let conn = Connectivity::from_neighbours(connectivity).map_err(crate::errors::to_py)?;
-    let occ = bool_array(occ, "occ", &GRID)?;
-    let shape = grid_shape(occ.shape());
-    let cells = occ.as_slice()?;
-    let found = guarded(py, move || Ok(voxel::components_dense(cells, shape, conn)))?;
+    let (found, shape) = on_dense(py, occ, |cells, shape| {
+        voxel::components_dense(cells, shape, conn)
+    })?;
     Ok((
         reshape(found.labels.into_pyarray(py), &shape)?,
         found.sizes.into_pyarray(py),
@@ -205,17 +204,55 @@ fn components_keys<'py>(
     connectivity: i64,
 ) -> PyResult<(Vector<'py, i32>, Vector<'py, i64>)> {
     let conn = Connectivity::from_neighbours(connectivity).map_err(crate::errors::to_py)?;
-    let keys = i64_array(keys, "keys", &KEYS)?;
-    let k = keys.as_slice()?;
-    let found = guarded(py, move || {
-        check_keys(k, shape, "keys")?;
+    let found = on_keys(py, keys, shape, |k| {
         Ok(voxel::components_keys(k, shape, conn))
     })?;
     Ok((found.labels.into_pyarray(py), found.sizes.into_pyarray(py)))
 }
 
-fn grid_shape(shape: &[usize]) -> [usize; 3] {
-    [shape[0], shape[1], shape[2]]
+/// Runs `op` without the GIL on `points` (checked as float32 [N, 3]) and the grid
+/// `(origin, voxel_size, shape)` (checked first).
+fn on_points<'py, R: Send>(
+    py: Python<'py>,
+    points: &Bound<'py, PyAny>,
+    (origin, voxel_size, shape): ([f64; 3], f64, [usize; 3]),
+    op: impl FnOnce(&GridSpec, &[[f32; 3]]) -> gear_core::Result<R> + Send,
+) -> PyResult<R> {
+    let grid = GridSpec::new(origin, voxel_size, shape).map_err(crate::errors::to_py)?;
+    let points = array::<f32>(points, "points", &POINTS)?;
+    let pts = as_points(points.as_slice()?);
+    guarded(py, move || op(&grid, pts))
+}
+
+/// Runs `op` without the GIL on a dense occupancy `occ` (checked as bool [X, Y, Z]) and its
+/// shape; returns the result and the shape.
+fn on_dense<'py, R: Send>(
+    py: Python<'py>,
+    occ: &Bound<'py, PyAny>,
+    op: impl FnOnce(&[bool], [usize; 3]) -> R + Send,
+) -> PyResult<(R, [usize; 3])> {
+    let occ = array::<bool>(occ, "occ", &GRID)?;
+    let dims = occ.shape();
+    let shape = [dims[0], dims[1], dims[2]];
+    let cells = occ.as_slice()?;
+    let out = guarded(py, move || Ok(op(cells, shape)))?;
+    Ok((out, shape))
+}
+
+/// Runs `op` without the GIL on sparse occupancy `keys` (checked as int64 [M], then as sorted
+/// distinct keys of a grid of `shape`).
+fn on_keys<'py, R: Send>(
+    py: Python<'py>,
+    keys: &Bound<'py, PyAny>,
+    shape: [usize; 3],
+    op: impl FnOnce(&[i64]) -> gear_core::Result<R> + Send,
+) -> PyResult<R> {
+    let keys = array::<i64>(keys, "keys", &KEYS)?;
+    let k = keys.as_slice()?;
+    guarded(py, move || {
+        check_keys(k, shape, "keys")?;
+        op(k)
+    })
 }
 
 /// Gives a flat result array its real shape (a view; no copy).

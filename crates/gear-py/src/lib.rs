@@ -9,7 +9,7 @@ mod splat;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use args::{f32_array, Dim};
+use args::{array, Dim};
 use errors::guarded;
 
 /// The adapter in use and what it offers (see `python -m gear info`).
@@ -37,7 +37,7 @@ fn adapter_info(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
 /// Sum of a 1-D float32 array, reduced on the GPU.
 #[pyfunction]
 fn sum_f32(py: Python<'_>, values: &Bound<'_, PyAny>) -> PyResult<f32> {
-    let arr = f32_array(values, "values", &[Dim::Any("N")])?;
+    let arr = array::<f32>(values, "values", &[Dim::Any("N")])?;
     let data = arr.as_slice()?.to_vec();
     guarded(py, move || gear_core::reduce::sum_f32(&data))
 }

@@ -5,19 +5,18 @@
 
 use gear_core::splat::{
     self, reference, Accumulation, Camera, ForwardState, GaussianGradients, Gaussians,
-    OutputGradients, RenderOptions, RenderOutput,
+    OutputGradients, OwnedGaussians, RenderOptions, RenderOutput,
 };
 use numpy::{Element, PyArray1, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
 
-use crate::args::{f32_array, f64_array, Dim};
+use crate::args::{array, Dim, Dtype};
 use crate::errors::guarded;
 
 /// Owned inputs of a reference forward pass, replayed by its backward.
 struct ReferenceInputs {
-    arrays: [Vec<f32>; 5],
-    channels: usize,
+    gaussians: OwnedGaussians,
     camera: Camera,
     options: RenderOptions,
 }
@@ -89,22 +88,22 @@ fn forward_args<'py>(
     depth: bool,
 ) -> PyResult<ForwardArgs<'py>> {
     let n = Dim::Any("N");
-    let features = f32_array(features, "features", &[n, Dim::Any("C")])?;
+    let features = array::<f32>(features, "features", &[n, Dim::Any("C")])?;
     let channels = features.shape()[1];
     let arrays = [
-        f32_array(means, "means", &[n, Dim::Fixed(3)])?,
-        f32_array(quats, "quats", &[n, Dim::Fixed(4)])?,
-        f32_array(log_scales, "log_scales", &[n, Dim::Fixed(3)])?,
-        f32_array(opacity_logits, "opacity_logits", &[n])?,
+        array::<f32>(means, "means", &[n, Dim::Fixed(3)])?,
+        array::<f32>(quats, "quats", &[n, Dim::Fixed(4)])?,
+        array::<f32>(log_scales, "log_scales", &[n, Dim::Fixed(3)])?,
+        array::<f32>(opacity_logits, "opacity_logits", &[n])?,
         features,
     ];
-    let w2c = f32_array(
+    let w2c = array::<f32>(
         world_to_cam,
         "world_to_cam",
         &[Dim::Fixed(4), Dim::Fixed(4)],
     )?;
     let w2c = w2c.as_slice()?;
-    let background = f32_array(background, "background", &[Dim::Fixed(channels)])?;
+    let background = array::<f32>(background, "background", &[Dim::Fixed(channels)])?;
     let (fx, fy, cx, cy) = intrinsics;
     let camera = Camera {
         world_to_cam: std::array::from_fn(|r| std::array::from_fn(|c| w2c[4 * r + c])),
@@ -125,12 +124,6 @@ fn forward_args<'py>(
         camera,
         options,
     })
-}
-
-fn gaussians<'a>(slices: &[&'a [f32]; 5], channels: usize) -> gear_core::Result<Gaussians<'a>> {
-    Gaussians::from_flat(
-        slices[0], slices[1], slices[2], slices[3], slices[4], channels,
-    )
 }
 
 type Images<'py> = (
@@ -193,19 +186,26 @@ type ForwardResult<'py> = (
     RasterState,
 );
 
+/// The renderer of a forward binding: images and the state its backward needs.
+type Render<T> =
+    fn(Gaussians<'_>, &Camera, &RenderOptions) -> gear_core::Result<(RenderOutput<T>, StateKind)>;
+
 /// What both forward bindings do around their renderer: borrow the checked arrays as
-/// Gaussians, run `render` (GIL released; it also gets the flat arrays), and return its images
-/// as numpy arrays with a `RasterState` around the state it made.
+/// Gaussians, run `render` (GIL released), and return its images as numpy arrays with a
+/// `RasterState` around the state it made.
 fn forward_result<'py, T: Element + Send>(
     py: Python<'py>,
     args: &ForwardArgs<'py>,
     force_cas: bool,
-    render: impl FnOnce(Gaussians<'_>, &[&[f32]; 5]) -> gear_core::Result<(RenderOutput<T>, StateKind)>
-        + Send,
+    render: Render<T>,
 ) -> PyResult<ForwardResult<'py>> {
-    let slices = args.slices()?;
-    let channels = args.channels;
-    let (out, kind) = guarded(py, || render(gaussians(&slices, channels)?, &slices))?;
+    let [means, quats, log_scales, opacity_logits, features] = args.slices()?;
+    let (camera, options, channels) = (&args.camera, &args.options, args.channels);
+    let (out, kind) = guarded(py, || {
+        let gaussians =
+            Gaussians::from_flat(means, quats, log_scales, opacity_logits, features, channels)?;
+        render(gaussians, camera, options)
+    })?;
     let (width, height) = (args.camera.width, args.camera.height);
     let (f, a, d) = images(py, out, width, height, channels)?;
     let state = RasterState {
@@ -219,91 +219,83 @@ fn forward_result<'py, T: Element + Send>(
     Ok((f, a, d, state))
 }
 
-/// Renders on the GPU. `force_cas` makes the later backward accumulate with the
-/// compare-and-swap loop even where float32 atomics exist (to test that path).
-#[pyfunction]
-#[pyo3(signature = (means, quats, log_scales, opacity_logits, features, world_to_cam, intrinsics, width, height, background, depth, force_cas=false))]
-#[allow(clippy::too_many_arguments)]
-fn rasterize_forward<'py>(
-    py: Python<'py>,
-    means: &Bound<'py, PyAny>,
-    quats: &Bound<'py, PyAny>,
-    log_scales: &Bound<'py, PyAny>,
-    opacity_logits: &Bound<'py, PyAny>,
-    features: &Bound<'py, PyAny>,
-    world_to_cam: &Bound<'py, PyAny>,
-    intrinsics: (f32, f32, f32, f32),
-    width: u32,
-    height: u32,
-    background: &Bound<'py, PyAny>,
-    depth: bool,
-    force_cas: bool,
-) -> PyResult<ForwardResult<'py>> {
-    let args = forward_args(
-        means,
-        quats,
-        log_scales,
-        opacity_logits,
-        features,
-        world_to_cam,
-        intrinsics,
-        width,
-        height,
-        background,
-        depth,
-    )?;
-    let (camera, options) = (&args.camera, &args.options);
-    forward_result(py, &args, force_cas, |gaussians, _| {
-        let (out, state) = splat::forward(&gaussians, camera, options)?;
-        Ok((out, StateKind::Gpu(Box::new(state))))
-    })
+/// Declares a forward binding with the rasterizer contract's signature: it checks the
+/// arguments and hands them to `forward_result` with `$render` (a [`Render`]). One declaration
+/// serves the GPU and the reference binding, so their signatures cannot drift apart.
+macro_rules! forward_binding {
+    ($(#[$doc:meta])* $name:ident => $render:path) => {
+        $(#[$doc])*
+        #[pyfunction]
+        #[pyo3(signature = (means, quats, log_scales, opacity_logits, features, world_to_cam, intrinsics, width, height, background, depth, force_cas=false))]
+        #[allow(clippy::too_many_arguments)]
+        fn $name<'py>(
+            py: Python<'py>,
+            means: &Bound<'py, PyAny>,
+            quats: &Bound<'py, PyAny>,
+            log_scales: &Bound<'py, PyAny>,
+            opacity_logits: &Bound<'py, PyAny>,
+            features: &Bound<'py, PyAny>,
+            world_to_cam: &Bound<'py, PyAny>,
+            intrinsics: (f32, f32, f32, f32),
+            width: u32,
+            height: u32,
+            background: &Bound<'py, PyAny>,
+            depth: bool,
+            force_cas: bool,
+        ) -> PyResult<ForwardResult<'py>> {
+            let args = forward_args(
+                means,
+                quats,
+                log_scales,
+                opacity_logits,
+                features,
+                world_to_cam,
+                intrinsics,
+                width,
+                height,
+                background,
+                depth,
+            )?;
+            forward_result(py, &args, force_cas, $render)
+        }
+    };
 }
 
-/// Renders with the f64 CPU reference (outputs float64); same arguments as
-/// `rasterize_forward` (`force_cas` is accepted and ignored).
-#[pyfunction]
-#[pyo3(signature = (means, quats, log_scales, opacity_logits, features, world_to_cam, intrinsics, width, height, background, depth, force_cas=false))]
-#[allow(clippy::too_many_arguments)]
-fn reference_forward<'py>(
-    py: Python<'py>,
-    means: &Bound<'py, PyAny>,
-    quats: &Bound<'py, PyAny>,
-    log_scales: &Bound<'py, PyAny>,
-    opacity_logits: &Bound<'py, PyAny>,
-    features: &Bound<'py, PyAny>,
-    world_to_cam: &Bound<'py, PyAny>,
-    intrinsics: (f32, f32, f32, f32),
-    width: u32,
-    height: u32,
-    background: &Bound<'py, PyAny>,
-    depth: bool,
-    force_cas: bool,
-) -> PyResult<ForwardResult<'py>> {
-    let args = forward_args(
-        means,
-        quats,
-        log_scales,
-        opacity_logits,
-        features,
-        world_to_cam,
-        intrinsics,
-        width,
-        height,
-        background,
-        depth,
-    )?;
-    let (camera, options, channels) = (&args.camera, &args.options, args.channels);
-    forward_result(py, &args, force_cas, |gaussians, slices| {
-        let out = reference::forward(&gaussians, camera, options)?;
-        let inputs = ReferenceInputs {
-            arrays: slices.map(<[f32]>::to_vec),
-            channels,
-            camera: *camera,
-            options: options.clone(),
-        };
-        Ok((out, StateKind::Reference(Box::new(inputs))))
-    })
+fn render_gpu(
+    gaussians: Gaussians<'_>,
+    camera: &Camera,
+    options: &RenderOptions,
+) -> gear_core::Result<(RenderOutput<f32>, StateKind)> {
+    let (out, state) = splat::forward(&gaussians, camera, options)?;
+    Ok((out, StateKind::Gpu(Box::new(state))))
 }
+
+/// The reference render, keeping copies of the inputs for its backward.
+fn render_reference(
+    gaussians: Gaussians<'_>,
+    camera: &Camera,
+    options: &RenderOptions,
+) -> gear_core::Result<(RenderOutput<f64>, StateKind)> {
+    let out = reference::forward(&gaussians, camera, options)?;
+    let inputs = ReferenceInputs {
+        gaussians: gaussians.into(),
+        camera: *camera,
+        options: options.clone(),
+    };
+    Ok((out, StateKind::Reference(Box::new(inputs))))
+}
+
+forward_binding!(
+    /// Renders on the GPU. `force_cas` makes the later backward accumulate with the
+    /// compare-and-swap loop even where float32 atomics exist (to test that path).
+    rasterize_forward => render_gpu
+);
+
+forward_binding!(
+    /// Renders with the f64 CPU reference (outputs float64); same arguments as
+    /// `rasterize_forward` (`force_cas` is accepted and ignored).
+    reference_forward => render_reference
+);
 
 /// Image gradients as checked numpy views of element type `T`.
 struct ImageGrads<'py, T: Element> {
@@ -322,12 +314,8 @@ impl<T: Element> ImageGrads<'_, T> {
     }
 }
 
-type ArrayCheck<'py, T> =
-    fn(&Bound<'py, PyAny>, &str, &[Dim]) -> PyResult<numpy::PyReadonlyArrayDyn<'py, T>>;
-
-fn image_grads<'py, T: Element>(
+fn image_grads<'py, T: Dtype>(
     state: &RasterState,
-    check: ArrayCheck<'py, T>,
     grad_features: &Bound<'py, PyAny>,
     grad_alpha: &Bound<'py, PyAny>,
     grad_depth: Option<&Bound<'py, PyAny>>,
@@ -337,15 +325,15 @@ fn image_grads<'py, T: Element>(
         Dim::Fixed(state.width as usize),
     );
     Ok(ImageGrads {
-        features: check(
+        features: array::<T>(
             grad_features,
             "grad_features",
             &[h, w, Dim::Fixed(state.channels)],
         )?,
-        alpha: check(grad_alpha, "grad_alpha", &[h, w])?,
+        alpha: array::<T>(grad_alpha, "grad_alpha", &[h, w])?,
         depth: grad_depth
             .filter(|d| !d.is_none())
-            .map(|d| check(d, "grad_depth", &[h, w]))
+            .map(|d| array::<T>(d, "grad_depth", &[h, w]))
             .transpose()?,
     })
 }
@@ -370,7 +358,7 @@ fn rasterize_backward<'py>(
     let StateKind::Gpu(forward) = &state.kind else {
         return Err(wrong_state("rasterize_forward"));
     };
-    let grads = image_grads(state, f32_array, grad_features, grad_alpha, grad_depth)?;
+    let grads = image_grads::<f32>(state, grad_features, grad_alpha, grad_depth)?;
     let view = grads.view()?;
     let accumulation = if state.force_cas {
         Accumulation::CompareAndSwap
@@ -403,7 +391,7 @@ fn reference_backward<'py>(
     let widened: [Vec<f64>; 3];
     let as_f64;
     let view = if is_f32 {
-        let narrow = image_grads(state, f32_array, grad_features, grad_alpha, grad_depth)?;
+        let narrow = image_grads::<f32>(state, grad_features, grad_alpha, grad_depth)?;
         let v = narrow.view()?;
         let widen = |s: &[f32]| s.iter().map(|&x| f64::from(x)).collect::<Vec<f64>>();
         widened = [
@@ -417,13 +405,12 @@ fn reference_backward<'py>(
             depth: v.depth.map(|_| &widened[2][..]),
         }
     } else {
-        as_f64 = image_grads(state, f64_array, grad_features, grad_alpha, grad_depth)?;
+        as_f64 = image_grads::<f64>(state, grad_features, grad_alpha, grad_depth)?;
         as_f64.view()?
     };
-    let slices: [&[f32]; 5] = std::array::from_fn(|k| inputs.arrays[k].as_slice());
     let g = guarded(py, || {
         reference::backward(
-            &gaussians(&slices, inputs.channels)?,
+            &inputs.gaussians.view(),
             &inputs.camera,
             &inputs.options,
             &view,

@@ -47,52 +47,53 @@ pub const SORT_WG: u32 = 64;
 /// Threads per workgroup of the other 1D kernels.
 pub const WG: u32 = 256;
 
-const PROJECT: &str = concat!(
-    include_str!("../shaders/splat/common.wgsl"),
-    include_str!("../shaders/splat/project_common.wgsl"),
-    include_str!("../shaders/splat/project.wgsl"),
-);
-const PROJECT_BACKWARD: &str = concat!(
-    include_str!("../shaders/splat/common.wgsl"),
-    include_str!("../shaders/splat/project_common.wgsl"),
-    include_str!("../shaders/splat/project_backward.wgsl"),
-);
+/// One WGSL source from files of shaders/splat/ (names without `.wgsl`), in order after
+/// grid.wgsl (indices in the folded dispatch grid, which every kernel needs): a file may use
+/// what the ones before it declare.
+macro_rules! splat_source {
+    ($($file:literal),+ $(,)?) => {
+        concat!(
+            include_str!("../shaders/splat/grid.wgsl"),
+            $(include_str!(concat!("../shaders/splat/", $file, ".wgsl"))),+
+        )
+    };
+}
+
+const PROJECT: &str = splat_source!("common", "project_common", "project");
+const PROJECT_BACKWARD: &str = splat_source!("common", "project_common", "project_backward");
 /// Blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or not.
-const BLEND_SUBGROUP: &str = concat!(
-    include_str!("../shaders/splat/common.wgsl"),
-    include_str!("../shaders/splat/tile_share_subgroup.wgsl"),
-    include_str!("../shaders/splat/blend.wgsl"),
-);
-const BLEND_ROWS: &str = concat!(
-    include_str!("../shaders/splat/common.wgsl"),
-    include_str!("../shaders/splat/tile_share_rows.wgsl"),
-    include_str!("../shaders/splat/blend.wgsl"),
-);
+const BLEND_SUBGROUP: &str =
+    splat_source!("common", "tile_share_subgroup", "blend_common", "blend");
+const BLEND_ROWS: &str = splat_source!("common", "tile_share_rows", "blend_common", "blend");
 /// Blend backward's accumulation (native f32 atomics or compare-and-swap), then how its rows
 /// share loads and atomics (over a subgroup, or not at all).
-const BLEND_BACKWARD_FLOAT_SUBGROUP: &str = concat!(
-    include_str!("../shaders/splat/common.wgsl"),
-    include_str!("../shaders/splat/atomic_float.wgsl"),
-    include_str!("../shaders/splat/tile_share_subgroup.wgsl"),
-    include_str!("../shaders/splat/blend_backward.wgsl"),
+const BLEND_BACKWARD_FLOAT_SUBGROUP: &str = splat_source!(
+    "common",
+    "atomic_float",
+    "tile_share_subgroup",
+    "blend_common",
+    "blend_backward",
 );
-const BLEND_BACKWARD_FLOAT_ROWS: &str = concat!(
-    include_str!("../shaders/splat/common.wgsl"),
-    include_str!("../shaders/splat/atomic_float.wgsl"),
-    include_str!("../shaders/splat/tile_share_rows.wgsl"),
-    include_str!("../shaders/splat/blend_backward.wgsl"),
+const BLEND_BACKWARD_FLOAT_ROWS: &str = splat_source!(
+    "common",
+    "atomic_float",
+    "tile_share_rows",
+    "blend_common",
+    "blend_backward",
 );
-const BLEND_BACKWARD_CAS_SUBGROUP: &str = concat!(
-    include_str!("../shaders/splat/common.wgsl"),
-    include_str!("../shaders/splat/atomic_cas.wgsl"),
-    include_str!("../shaders/splat/tile_share_subgroup.wgsl"),
-    include_str!("../shaders/splat/blend_backward.wgsl"),
+const BLEND_BACKWARD_CAS_SUBGROUP: &str = splat_source!(
+    "common",
+    "atomic_cas",
+    "tile_share_subgroup",
+    "blend_common",
+    "blend_backward",
 );
-const BLEND_BACKWARD_CAS_ROWS: &str = concat!(
-    include_str!("../shaders/splat/common.wgsl"),
-    include_str!("../shaders/splat/atomic_cas.wgsl"),
-    include_str!("../shaders/splat/tile_share_rows.wgsl"),
-    include_str!("../shaders/splat/blend_backward.wgsl"),
+const BLEND_BACKWARD_CAS_ROWS: &str = splat_source!(
+    "common",
+    "atomic_cas",
+    "tile_share_rows",
+    "blend_common",
+    "blend_backward",
 );
 
 /// A WGSL f32 literal.
@@ -171,40 +172,23 @@ fn scan_spec(name: &'static str, source: &'static str) -> ShaderSpec {
 }
 
 pub fn scan_block() -> ShaderSpec {
-    scan_spec(
-        "splat_scan_block",
-        include_str!("../shaders/splat/scan_block.wgsl"),
-    )
+    scan_spec("splat_scan_block", splat_source!("scan_block"))
 }
 
 pub fn scan_add() -> ShaderSpec {
-    scan_spec(
-        "splat_scan_add",
-        include_str!("../shaders/splat/scan_add.wgsl"),
-    )
+    scan_spec("splat_scan_add", splat_source!("scan_add"))
 }
 
 pub fn radix_count(bits: u32) -> ShaderSpec {
-    const SOURCE: &str = concat!(
-        include_str!("../shaders/splat/radix_common.wgsl"),
-        include_str!("../shaders/splat/radix_count.wgsl"),
-    );
+    const SOURCE: &str = splat_source!("radix_common", "radix_count");
     ShaderSpec::new("splat_radix_count", SOURCE, "main").with("BITS", format!("{bits}u"))
 }
 
 /// The scatter step; `identity_values` makes the payload each element's input position
 /// (no values buffer is bound then).
 pub fn radix_scatter(bits: u32, identity_values: bool) -> ShaderSpec {
-    const FROM_BUFFER: &str = concat!(
-        include_str!("../shaders/splat/radix_common.wgsl"),
-        include_str!("../shaders/splat/radix_values_buffer.wgsl"),
-        include_str!("../shaders/splat/radix_scatter.wgsl"),
-    );
-    const IDENTITY: &str = concat!(
-        include_str!("../shaders/splat/radix_common.wgsl"),
-        include_str!("../shaders/splat/radix_values_identity.wgsl"),
-        include_str!("../shaders/splat/radix_scatter.wgsl"),
-    );
+    const FROM_BUFFER: &str = splat_source!("radix_common", "radix_values_buffer", "radix_scatter");
+    const IDENTITY: &str = splat_source!("radix_common", "radix_values_identity", "radix_scatter");
     let (name, source) = if identity_values {
         ("splat_radix_scatter_identity", IDENTITY)
     } else {
@@ -214,27 +198,17 @@ pub fn radix_scatter(bits: u32, identity_values: bool) -> ShaderSpec {
 }
 
 pub fn tile_counts() -> ShaderSpec {
-    const SOURCE: &str = concat!(
-        include_str!("../shaders/splat/tile_test.wgsl"),
-        include_str!("../shaders/splat/tile_counts.wgsl"),
-    );
+    const SOURCE: &str = splat_source!("tile_test", "tile_counts");
     ShaderSpec::new("splat_tile_counts", SOURCE, "main").with("TILE", format!("{GPU_TILE}u"))
 }
 
 pub fn emit() -> ShaderSpec {
-    const SOURCE: &str = concat!(
-        include_str!("../shaders/splat/tile_test.wgsl"),
-        include_str!("../shaders/splat/emit.wgsl"),
-    );
+    const SOURCE: &str = splat_source!("tile_test", "emit");
     ShaderSpec::new("splat_emit", SOURCE, "main").with("TILE", format!("{GPU_TILE}u"))
 }
 
 pub fn tile_ranges() -> ShaderSpec {
-    ShaderSpec::new(
-        "splat_tile_ranges",
-        include_str!("../shaders/splat/tile_ranges.wgsl"),
-        "main",
-    )
+    ShaderSpec::new("splat_tile_ranges", splat_source!("tile_ranges"), "main")
 }
 
 /// A small uniform buffer holding `value`, zero-padded to a multiple of 16 bytes (the

@@ -15,10 +15,13 @@ mod sort;
 pub mod types;
 
 #[cfg(test)]
+mod test_rng;
+#[cfg(test)]
 mod tests;
 
 pub use backward::{backward, Accumulation};
 pub use forward::{forward, ForwardState};
 pub use types::{
-    Camera, GaussianGradients, Gaussians, OutputGradients, RenderOptions, RenderOutput,
+    Camera, GaussianGradients, Gaussians, OutputGradients, OwnedGaussians, RenderOptions,
+    RenderOutput,
 };

@@ -739,63 +739,8 @@ fn gradients(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// splitmix64: a tiny deterministic generator so tests need no extra crate.
-    struct Rng(u64);
-
-    impl Rng {
-        fn next_f32(&mut self) -> f32 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^= z >> 31;
-            (z >> 40) as f32 / (1u64 << 24) as f32
-        }
-
-        fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
-            lo + (hi - lo) * self.next_f32()
-        }
-    }
-
-    /// Gaussians owning their arrays.
-    #[derive(Debug, Clone, Default)]
-    struct Owned {
-        means: Vec<[f32; 3]>,
-        quats: Vec<[f32; 4]>,
-        log_scales: Vec<[f32; 3]>,
-        opacity_logits: Vec<f32>,
-        features: Vec<f32>,
-        channels: usize,
-    }
-
-    impl Owned {
-        fn new(channels: usize) -> Self {
-            Self {
-                channels,
-                ..Self::default()
-            }
-        }
-
-        fn push(&mut self, mean: [f32; 3], quat: [f32; 4], log_scale: f32, logit: f32, f: &[f32]) {
-            self.means.push(mean);
-            self.quats.push(quat);
-            self.log_scales.push([log_scale; 3]);
-            self.opacity_logits.push(logit);
-            self.features.extend_from_slice(f);
-        }
-
-        fn view(&self) -> Gaussians<'_> {
-            Gaussians {
-                means: &self.means,
-                quats: &self.quats,
-                log_scales: &self.log_scales,
-                opacity_logits: &self.opacity_logits,
-                features: &self.features,
-                channels: self.channels,
-            }
-        }
-    }
+    use crate::splat::test_rng::Rng;
+    use crate::splat::OwnedGaussians;
 
     /// A camera at `eye` looking along +z of a world rotated by `yaw` about the y axis.
     fn camera(width: u32, height: u32, focal: f32, yaw: f32, eye: [f32; 3]) -> Camera {
@@ -822,9 +767,9 @@ mod tests {
 
     /// `n` Gaussians in front of `cam` (centre about 4 units away), a few pixels wide, with
     /// opacities in [0.27, 0.73], unnormalised quaternions and features in [-1, 1].
-    fn random_gaussians(rng: &mut Rng, n: usize, channels: usize, cam: &Camera) -> Owned {
+    fn random_gaussians(rng: &mut Rng, n: usize, channels: usize, cam: &Camera) -> OwnedGaussians {
         let view = View::new(cam);
-        let mut g = Owned::new(channels);
+        let mut g = OwnedGaussians::new(channels);
         for _ in 0..n {
             let z = f64::from(rng.uniform(3.0, 5.0));
             let t = DVec3::new(
@@ -1001,8 +946,8 @@ mod tests {
 
     #[test]
     fn centre_pixel_of_a_single_gaussian() {
-        let mut g = Owned::new(3);
-        g.push([0.0, 0.0, 2.0], IDENTITY, -2.0, 0.5, &[0.2, 0.5, 0.9]);
+        let mut g = OwnedGaussians::new(3);
+        g.push([0.0, 0.0, 2.0], IDENTITY, [-2.0; 3], 0.5, &[0.2, 0.5, 0.9]);
         let opts = options(3, true);
         let out = forward(&g.view(), &axis_camera(), &opts).unwrap();
         // At the centre power = 0, so alpha = sigmoid(0.5) and T_final = 1 - alpha.
@@ -1019,7 +964,7 @@ mod tests {
     #[test]
     fn background_shows_through_where_there_are_no_gaussians() {
         let opts = options(2, true);
-        let empty = forward(&Owned::new(2).view(), &axis_camera(), &opts).unwrap();
+        let empty = forward(&OwnedGaussians::new(2).view(), &axis_camera(), &opts).unwrap();
         let bg: Vec<f64> = widen(&opts.background).repeat(120);
         assert_eq!(empty.features, bg);
         assert!(empty
@@ -1029,8 +974,8 @@ mod tests {
             .all(|&v| v == 0.0));
 
         // A small Gaussian over pixel (0, 0) leaves the opposite corner untouched.
-        let mut g = Owned::new(2);
-        g.push([-0.6, -0.5, 1.0], IDENTITY, -4.0, 3.0, &[1.0, 1.0]);
+        let mut g = OwnedGaussians::new(2);
+        g.push([-0.6, -0.5, 1.0], IDENTITY, [-4.0; 3], 3.0, &[1.0, 1.0]);
         let out = forward(&g.view(), &axis_camera(), &opts).unwrap();
         assert!(out.alpha[0] > 0.5);
         let last = 119;
@@ -1060,12 +1005,12 @@ mod tests {
         // Five stacked Gaussians of alpha 0.95 at the centre pixel: T goes 1, 0.05, 0.0025,
         // 1.25e-4, and the fourth would take it to 6.25e-6 < 1e-4, so only three blend.
         let logit = (0.95f32 / 0.05).ln();
-        let mut g = Owned::new(1);
+        let mut g = OwnedGaussians::new(1);
         for k in 0..5 {
             g.push(
                 [0.0, 0.0, 1.0 + k as f32],
                 IDENTITY,
-                -1.0,
+                [-1.0; 3],
                 logit,
                 &[k as f32 + 1.0],
             );
@@ -1088,7 +1033,11 @@ mod tests {
     }
 
     /// Gradients of `g` for all-ones image gradients.
-    fn ones_backward(g: &Owned, cam: &Camera, opts: &RenderOptions) -> GaussianGradients<f64> {
+    fn ones_backward(
+        g: &OwnedGaussians,
+        cam: &Camera,
+        opts: &RenderOptions,
+    ) -> GaussianGradients<f64> {
         let pixels = cam.pixels();
         let (gf, ga, gd) = (
             vec![1.0; pixels * g.channels],
@@ -1113,12 +1062,18 @@ mod tests {
         let behind =
             View::new(&cam).rot.transpose() * (DVec3::new(0.0, 0.0, -1.0) - View::new(&cam).trans);
         let behind = behind.as_vec3().to_array();
-        all.push(behind, IDENTITY, -1.0, 2.0, &[1.0, 1.0]); // behind the camera
-        all.push([f32::NAN, 0.0, 4.0], IDENTITY, -1.0, 2.0, &[1.0, 1.0]); // non-finite mean
-        all.push(visible.means[0], IDENTITY, -1.0, 2.0, &[f32::INFINITY, 0.0]); // non-finite feature
-        all.push(visible.means[1], IDENTITY, -1.0, -50.0, &[1.0, 1.0]); // opacity < 1/255
-        all.push(visible.means[2], IDENTITY, f32::MAX, 0.0, &[1.0, 1.0]); // overflowing scale
-        all.push([1e6, 0.0, 1e6], IDENTITY, -1.0, 2.0, &[1.0, 1.0]); // far outside the image
+        all.push(behind, IDENTITY, [-1.0; 3], 2.0, &[1.0, 1.0]); // behind the camera
+        all.push([f32::NAN, 0.0, 4.0], IDENTITY, [-1.0; 3], 2.0, &[1.0, 1.0]); // non-finite mean
+        all.push(
+            visible.means[0],
+            IDENTITY,
+            [-1.0; 3],
+            2.0,
+            &[f32::INFINITY, 0.0],
+        ); // non-finite feature
+        all.push(visible.means[1], IDENTITY, [-1.0; 3], -50.0, &[1.0, 1.0]); // opacity < 1/255
+        all.push(visible.means[2], IDENTITY, [f32::MAX; 3], 0.0, &[1.0, 1.0]); // overflowing scale
+        all.push([1e6, 0.0, 1e6], IDENTITY, [-1.0; 3], 2.0, &[1.0, 1.0]); // far outside the image
 
         assert_eq!(
             forward(&all.view(), &cam, &opts).unwrap(),
@@ -1138,8 +1093,8 @@ mod tests {
 
     #[test]
     fn zero_quaternion_is_the_identity_with_zero_gradient() {
-        let mut zero = Owned::new(1);
-        zero.push([0.1, 0.0, 2.0], [0.0; 4], -1.5, 1.0, &[0.7]);
+        let mut zero = OwnedGaussians::new(1);
+        zero.push([0.1, 0.0, 2.0], [0.0; 4], [-1.5; 3], 1.0, &[0.7]);
         zero.log_scales[0] = [-1.0, -1.8, -1.3];
         let mut identity = zero.clone();
         identity.quats[0] = IDENTITY;
@@ -1157,8 +1112,8 @@ mod tests {
 
     #[test]
     fn mismatched_arrays_are_rejected() {
-        let mut g = Owned::new(2);
-        g.push([0.0, 0.0, 2.0], IDENTITY, -1.0, 0.0, &[1.0, 1.0]);
+        let mut g = OwnedGaussians::new(2);
+        g.push([0.0, 0.0, 2.0], IDENTITY, [-1.0; 3], 0.0, &[1.0, 1.0]);
         g.opacity_logits.push(0.0);
         assert!(forward(&g.view(), &axis_camera(), &options(2, false)).is_err());
     }

@@ -5,97 +5,54 @@
 use super::backward::{backward_impl, Accumulation};
 use super::forward::forward_impl;
 use super::reference;
-use super::types::{Camera, GaussianGradients, Gaussians, OutputGradients, RenderOptions};
+use super::test_rng::Rng;
+use super::types::{Camera, GaussianGradients, OutputGradients, OwnedGaussians, RenderOptions};
 use crate::gpu::GpuContext;
 
-/// Deterministic generator (splitmix64) so scenes need no external crate.
-struct Rng(u64);
-
-impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
-        let u = (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
-        lo + (hi - lo) * u
-    }
+/// `n` Gaussians spread through the view of [`camera`], of a few pixels to a few tiles.
+fn random_scene(n: usize, channels: usize, seed: u64) -> OwnedGaussians {
+    random_scene_sized(n, channels, seed, -4.0)
 }
 
-/// Owned Gaussian arrays; [`Scene::view`] borrows them as [`Gaussians`].
-#[derive(Clone, Default)]
-struct Scene {
-    means: Vec<[f32; 3]>,
-    quats: Vec<[f32; 4]>,
-    log_scales: Vec<[f32; 3]>,
-    opacity_logits: Vec<f32>,
-    features: Vec<f32>,
-    channels: usize,
+/// As [`random_scene`] with log-scales around `log_scale`.
+fn random_scene_sized(n: usize, channels: usize, seed: u64, log_scale: f32) -> OwnedGaussians {
+    let mut rng = Rng(seed);
+    let mut s = OwnedGaussians::new(channels);
+    for _ in 0..n {
+        s.means.push([
+            rng.uniform(-1.6, 1.6),
+            rng.uniform(-1.3, 1.3),
+            rng.uniform(-1.5, 1.5),
+        ]);
+        s.quats.push([
+            rng.uniform(-1.0, 1.0),
+            rng.uniform(-1.0, 1.0),
+            rng.uniform(-1.0, 1.0),
+            rng.uniform(-1.0, 1.0),
+        ]);
+        let base = log_scale + rng.uniform(0.0, 1.8);
+        s.log_scales.push([
+            base + rng.uniform(-0.5, 0.5),
+            base + rng.uniform(-0.5, 0.5),
+            base + rng.uniform(-0.5, 0.5),
+        ]);
+        s.opacity_logits.push(rng.uniform(-3.0, 3.0));
+        for _ in 0..channels {
+            s.features.push(rng.uniform(-0.2, 1.0));
+        }
+    }
+    s
 }
 
-impl Scene {
-    /// `n` Gaussians spread through the view of [`camera`], of a few pixels to a few tiles.
-    fn random(n: usize, channels: usize, seed: u64) -> Self {
-        Self::random_sized(n, channels, seed, -4.0)
+/// Isotropic Gaussians from rows of (mean, quaternion, log-scale, opacity logit), each with
+/// features 0.25, 0.35, ...
+fn plain_scene(channels: usize, rows: &[([f32; 3], [f32; 4], f32, f32)]) -> OwnedGaussians {
+    let features: Vec<f32> = (0..channels).map(|c| 0.25 + 0.1 * c as f32).collect();
+    let mut s = OwnedGaussians::new(channels);
+    for &(mean, quat, log_scale, logit) in rows {
+        s.push(mean, quat, [log_scale; 3], logit, &features);
     }
-
-    /// As [`Scene::random`] with log-scales around `log_scale`.
-    fn random_sized(n: usize, channels: usize, seed: u64, log_scale: f32) -> Self {
-        let mut rng = Rng(seed);
-        let mut s = Scene {
-            channels,
-            ..Default::default()
-        };
-        for _ in 0..n {
-            s.means.push([
-                rng.uniform(-1.6, 1.6),
-                rng.uniform(-1.3, 1.3),
-                rng.uniform(-1.5, 1.5),
-            ]);
-            s.quats.push([
-                rng.uniform(-1.0, 1.0),
-                rng.uniform(-1.0, 1.0),
-                rng.uniform(-1.0, 1.0),
-                rng.uniform(-1.0, 1.0),
-            ]);
-            let base = log_scale + rng.uniform(0.0, 1.8);
-            s.log_scales.push([
-                base + rng.uniform(-0.5, 0.5),
-                base + rng.uniform(-0.5, 0.5),
-                base + rng.uniform(-0.5, 0.5),
-            ]);
-            s.opacity_logits.push(rng.uniform(-3.0, 3.0));
-            for _ in 0..channels {
-                s.features.push(rng.uniform(-0.2, 1.0));
-            }
-        }
-        s
-    }
-
-    fn view(&self) -> Gaussians<'_> {
-        Gaussians {
-            means: &self.means,
-            quats: &self.quats,
-            log_scales: &self.log_scales,
-            opacity_logits: &self.opacity_logits,
-            features: &self.features,
-            channels: self.channels,
-        }
-    }
-
-    fn push(&mut self, mean: [f32; 3], quat: [f32; 4], log_scale: f32, logit: f32) {
-        self.means.push(mean);
-        self.quats.push(quat);
-        self.log_scales.push([log_scale; 3]);
-        self.opacity_logits.push(logit);
-        for c in 0..self.channels {
-            self.features.push(0.25 + 0.1 * c as f32);
-        }
-    }
+    s
 }
 
 /// A camera 4 units from the origin, slightly rotated about y so W_rot is not the identity.
@@ -218,7 +175,7 @@ fn subgroup_choices() -> Vec<bool> {
 
 /// GPU forward (every blend path) vs reference: worst errors of the feature and alpha images,
 /// and of depth.
-fn forward_errors(scene: &Scene, cam: &Camera, depth: bool) -> (ImageError, ImageError) {
+fn forward_errors(scene: &OwnedGaussians, cam: &Camera, depth: bool) -> (ImageError, ImageError) {
     let opts = options(scene.channels, depth);
     let reference = reference::forward(&scene.view(), cam, &opts).unwrap();
     let (mut image, mut depth_err) = (ImageError::default(), ImageError::default());
@@ -253,7 +210,7 @@ fn forward_matches_reference() {
         let cam = camera(w, h);
         for channels in [3usize, 11] {
             for depth in [false, true] {
-                let scene = Scene::random_sized(n, channels, seed + channels as u64, log_scale);
+                let scene = random_scene_sized(n, channels, seed + channels as u64, log_scale);
                 let (image, depth_err) = forward_errors(&scene, &cam, depth);
                 eprintln!(
                     "forward n={n} C={channels} depth={depth}: image {image:?} depth {depth_err:?}"
@@ -273,7 +230,7 @@ fn forward_matches_reference() {
 
 /// GPU and reference gradients for the same random image gradients.
 fn gradients(
-    scene: &Scene,
+    scene: &OwnedGaussians,
     cam: &Camera,
     depth: bool,
     path: BackwardPath,
@@ -364,7 +321,7 @@ fn gradients_match_reference() {
         for channels in [3usize, 11] {
             for depth in [false, true] {
                 for path in backward_paths() {
-                    let scene = Scene::random(n, channels, seed + channels as u64);
+                    let scene = random_scene(n, channels, seed + channels as u64);
                     let (gpu, reference) = gradients(&scene, &cam, depth, path);
                     let errors = gradient_errors(&gpu, &reference);
                     eprintln!("gradients n={n} C={channels} depth={depth} {path:?}: {errors:?}");
@@ -399,7 +356,12 @@ fn origin_camera(width: u32, height: u32) -> Camera {
 /// Forward and backward (every path) finite everywhere; forward within 1e-4 of the reference
 /// (up to rare discrete flips) when `compare` (not for scenes placed exactly on a cull
 /// boundary, where f32 and f64 may decide differently); returns the gradients of the last path.
-fn check_finite(name: &str, scene: &Scene, cam: &Camera, compare: bool) -> GaussianGradients<f32> {
+fn check_finite(
+    name: &str,
+    scene: &OwnedGaussians,
+    cam: &Camera,
+    compare: bool,
+) -> GaussianGradients<f32> {
     let opts = options(scene.channels, true);
     let reference = compare.then(|| reference::forward(&scene.view(), cam, &opts).unwrap());
     let img = random_image_grads(cam.pixels(), scene.channels, 7);
@@ -436,15 +398,16 @@ fn hard_cases_stay_finite() {
     let cam = origin_camera(40, 30);
     let id = [1.0, 0.0, 0.0, 0.0];
 
-    let mut near = Scene {
-        channels: 3,
-        ..Default::default()
-    };
-    near.push([0.0, 0.0, 0.01], id, -3.0, 2.0); // exactly at the near plane
-    near.push([0.001, 0.0, 0.010_001], id, -5.0, 2.0); // just inside
-    near.push([0.0, 0.0, -1.0], id, -1.0, 2.0); // behind the camera
-    near.push([0.0, 0.0, 0.009], id, -1.0, 2.0); // just too near
-    near.push([0.1, 0.0, 2.0], id, -3.0, 0.0); // an ordinary one
+    let near = plain_scene(
+        3,
+        &[
+            ([0.0, 0.0, 0.01], id, -3.0, 2.0), // exactly at the near plane
+            ([0.001, 0.0, 0.010_001], id, -5.0, 2.0), // just inside
+            ([0.0, 0.0, -1.0], id, -1.0, 2.0), // behind the camera
+            ([0.0, 0.0, 0.009], id, -1.0, 2.0), // just too near
+            ([0.1, 0.0, 2.0], id, -3.0, 0.0),  // an ordinary one
+        ],
+    );
     let g = check_finite("near plane", &near, &cam, false);
     for culled in [2, 3] {
         assert_eq!(
@@ -454,7 +417,7 @@ fn hard_cases_stay_finite() {
         assert_eq!(g.opacity_logits[culled], 0.0);
     }
 
-    let mut non_finite = Scene::random(40, 3, 21);
+    let mut non_finite = random_scene(40, 3, 21);
     non_finite.means[3][1] = f32::NAN;
     non_finite.quats[5][0] = f32::INFINITY;
     non_finite.log_scales[7][2] = f32::NEG_INFINITY;
@@ -470,21 +433,23 @@ fn hard_cases_stay_finite() {
         assert_eq!(g.features[3 * culled..3 * culled + 3], [0.0; 3]);
     }
 
-    let mut scales = Scene {
-        channels: 3,
-        ..Default::default()
-    };
-    scales.push([0.0, 0.0, 2.0], [0.3, 0.1, 0.2, 0.9], 1e-7f32.ln(), 1.0);
-    scales.push([0.05, 0.0, 2.0], [0.3, 0.1, 0.2, 0.9], 1e3f32.ln(), 1.0);
-    scales.push([0.0, 0.05, 0.02], [0.7, 0.1, 0.2, 0.1], 1e3f32.ln(), 1.0);
+    let scales = plain_scene(
+        3,
+        &[
+            ([0.0, 0.0, 2.0], [0.3, 0.1, 0.2, 0.9], 1e-7f32.ln(), 1.0),
+            ([0.05, 0.0, 2.0], [0.3, 0.1, 0.2, 0.9], 1e3f32.ln(), 1.0),
+            ([0.0, 0.05, 0.02], [0.7, 0.1, 0.2, 0.1], 1e3f32.ln(), 1.0),
+        ],
+    );
     check_finite("extreme scales", &scales, &cam, true);
 
-    let mut quats = Scene {
-        channels: 3,
-        ..Default::default()
-    };
-    quats.push([0.0, 0.0, 2.0], [0.0; 4], -2.5, 1.0);
-    quats.push([0.02, 0.0, 2.0], [1e-30, 0.0, 0.0, 0.0], -2.5, 1.0);
+    let quats = plain_scene(
+        3,
+        &[
+            ([0.0, 0.0, 2.0], [0.0; 4], -2.5, 1.0),
+            ([0.02, 0.0, 2.0], [1e-30, 0.0, 0.0, 0.0], -2.5, 1.0),
+        ],
+    );
     let g = check_finite("zero quaternion", &quats, &cam, true);
     assert_eq!(
         g.quats[0], [0.0; 4],
@@ -495,44 +460,38 @@ fn hard_cases_stay_finite() {
         "the Gaussian itself still learns"
     );
 
-    let mut logits = Scene {
-        channels: 11,
-        ..Default::default()
-    };
-    logits.push([0.0, 0.0, 2.0], id, -2.5, 50.0);
-    logits.push([0.01, 0.0, 2.5], id, -2.5, -50.0);
-    logits.push([0.0, 0.01, 3.0], id, -2.5, 50.0);
+    let logits = plain_scene(
+        11,
+        &[
+            ([0.0, 0.0, 2.0], id, -2.5, 50.0),
+            ([0.01, 0.0, 2.5], id, -2.5, -50.0),
+            ([0.0, 0.01, 3.0], id, -2.5, 50.0),
+        ],
+    );
     check_finite("opacity logits +-50", &logits, &cam, true);
 
-    let mut stacked = Scene {
-        channels: 3,
-        ..Default::default()
-    };
-    for k in 0..10_000 {
-        stacked.push([0.0, 0.0, 2.0 + k as f32 * 1e-3], id, -4.0, 0.5);
-    }
-    check_finite("10k stacked on one pixel", &stacked, &cam, true);
+    let stacked: Vec<_> = (0..10_000)
+        .map(|k| ([0.0, 0.0, 2.0 + k as f32 * 1e-3], id, -4.0, 0.5))
+        .collect();
+    check_finite(
+        "10k stacked on one pixel",
+        &plain_scene(3, &stacked),
+        &cam,
+        true,
+    );
 
-    let mut off = Scene::random(500, 3, 11);
+    let mut off = random_scene(500, 3, 11);
     for m in &mut off.means {
         m[0] += 100.0;
     }
     let g = check_finite("all off-screen", &off, &cam, true);
     assert!(g.features.iter().all(|&v| v == 0.0));
 
-    check_finite(
-        "no Gaussians",
-        &Scene {
-            channels: 3,
-            ..Default::default()
-        },
-        &cam,
-        true,
-    );
-    check_finite("1x1 image", &Scene::random(200, 3, 12), &camera(1, 1), true);
+    check_finite("no Gaussians", &OwnedGaussians::new(3), &cam, true);
+    check_finite("1x1 image", &random_scene(200, 3, 12), &camera(1, 1), true);
     check_finite(
         "1000x700 image",
-        &Scene::random(3000, 3, 13),
+        &random_scene(3000, 3, 13),
         &camera(1000, 700),
         true,
     );
@@ -543,7 +502,7 @@ fn hard_cases_stay_finite() {
 /// box; no pixel may lose a contribution.
 #[test]
 fn needles_match_reference() {
-    let mut scene = Scene::random_sized(300, 3, 31, -3.5);
+    let mut scene = random_scene_sized(300, 3, 31, -3.5);
     for s in &mut scene.log_scales {
         *s = [s[0] + 1.7, s[1] - 1.7, s[2] - 1.7];
     }
@@ -564,7 +523,7 @@ fn needles_match_reference() {
 /// both run; partial tiles at the right and bottom edges (90 x 70 is not a multiple of 8).
 #[test]
 fn saturated_scene_matches_reference() {
-    let mut scene = Scene::random_sized(600, 3, 41, -2.0);
+    let mut scene = random_scene_sized(600, 3, 41, -2.0);
     for l in &mut scene.opacity_logits {
         *l += 5.0;
     }

@@ -145,6 +145,70 @@ impl Gaussians<'_> {
     }
 }
 
+/// N Gaussians owning their arrays (same layout as [`Gaussians`]); [`OwnedGaussians::view`]
+/// borrows them. For callers that build scenes or keep a copy of their inputs.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct OwnedGaussians {
+    pub means: Vec<[f32; 3]>,
+    /// (w, x, y, z), unnormalised.
+    pub quats: Vec<[f32; 4]>,
+    pub log_scales: Vec<[f32; 3]>,
+    pub opacity_logits: Vec<f32>,
+    /// N x `channels`, row-major.
+    pub features: Vec<f32>,
+    pub channels: usize,
+}
+
+impl OwnedGaussians {
+    /// No Gaussians yet, with `channels` feature channels.
+    pub fn new(channels: usize) -> Self {
+        Self {
+            channels,
+            ..Self::default()
+        }
+    }
+
+    /// Appends one Gaussian (`features` holds its `channels` values).
+    pub fn push(
+        &mut self,
+        mean: [f32; 3],
+        quat: [f32; 4],
+        log_scales: [f32; 3],
+        opacity_logit: f32,
+        features: &[f32],
+    ) {
+        self.means.push(mean);
+        self.quats.push(quat);
+        self.log_scales.push(log_scales);
+        self.opacity_logits.push(opacity_logit);
+        self.features.extend_from_slice(features);
+    }
+
+    pub fn view(&self) -> Gaussians<'_> {
+        Gaussians {
+            means: &self.means,
+            quats: &self.quats,
+            log_scales: &self.log_scales,
+            opacity_logits: &self.opacity_logits,
+            features: &self.features,
+            channels: self.channels,
+        }
+    }
+}
+
+impl From<Gaussians<'_>> for OwnedGaussians {
+    fn from(g: Gaussians<'_>) -> Self {
+        Self {
+            means: g.means.to_vec(),
+            quats: g.quats.to_vec(),
+            log_scales: g.log_scales.to_vec(),
+            opacity_logits: g.opacity_logits.to_vec(),
+            features: g.features.to_vec(),
+            channels: g.channels,
+        }
+    }
+}
+
 /// What to render besides the feature image.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RenderOptions {

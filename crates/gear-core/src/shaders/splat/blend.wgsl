@@ -16,11 +16,7 @@
 // indexed by pixel (which would be gathers again), and per-pixel decisions are selects.
 // No per-pixel bounding box is tested: it would only skip pixels the alpha test skips.
 
-// Per Gaussian: (u, v, z, opacity), (conic a, b, c, level) (see project.wgsl).
-@group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
-@group(0) @binding(1) var<storage, read> tile_values: array<u32>;
-@group(0) @binding(2) var<storage, read> ranges: array<u32>;
-@group(0) @binding(3) var<storage, read> features: array<f32>;
+// Bindings 0-3 (projected, tile_values, ranges, features): blend_common.wgsl.
 // [H*W*C features][H*W alpha][H*W depth, when WITH_DEPTH].
 @group(0) @binding(4) var<storage, read_write> image: array<f32>;
 // Per pixel: (bits of final T, end of the consumed list prefix).
@@ -44,33 +40,29 @@ fn new_quad(first: u32, row_len: u32, start: u32) -> Quad {
     return q;
 }
 
-// Blends list entry k (Gaussian head, conic, colour own) into the quad's pixels at x = xs,
-// y = cy; returns how many of them stopped.
+// Blends list entry k (`e`, colour `own`) into the quad's pixels at x = xs, y = cy; returns
+// how many of them stopped.
 fn blend_quad(
     q: ptr<function, Quad>,
     xs: vec4<f32>,
     cy: f32,
-    head: vec4<f32>,
-    conic: vec3<f32>,
+    e: Entry,
     own: ptr<function, array<f32, CHANNELS>>,
     k: u32,
 ) -> u32 {
-    let dx = xs - head.x;
-    let dy = cy - head.y;
-    let power = gaussian_power(dx, dy, conic);
-    let alpha = min(vec4<f32>(MAX_ALPHA), head.w * exp(power));
+    let v = evaluate_quad(e, xs, cy);
     let t = (*q).transmittance;
-    let next = t * (1.0 - alpha);
-    let hit = !(*q).stopped & power <= vec4<f32>(0.0) & alpha >= vec4<f32>(MIN_ALPHA);
+    let next = t * (1.0 - v.alpha);
+    let hit = !(*q).stopped & v.passes;
     let stop = hit & next < vec4<f32>(MIN_TRANSMITTANCE);
     let blend = hit & !stop;
     (*q).stopped = (*q).stopped | stop;
-    let w = select(vec4<f32>(0.0), alpha * t, blend);
+    let w = select(vec4<f32>(0.0), v.alpha * t, blend);
     for (var c = 0u; c < CHANNELS; c++) {
         (*q).features[c] += w * (*own)[c];
     }
     if WITH_DEPTH {
-        (*q).depth += w * head.z;
+        (*q).depth += w * e.head.z;
     }
     (*q).transmittance = select(t, next, blend);
     (*q).consumed = select((*q).consumed, vec4<u32>(k + 1u), blend);
@@ -100,7 +92,7 @@ fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
 ) {
-    let tile = (wg.x + wg.y * nwg.x) * TILE_GROUP + lid.x / TILE;
+    let tile = workgroup_index(wg, nwg) * TILE_GROUP + lid.x / TILE;
     if tile >= frame.tiles_x * frame.tiles_y {
         return;
     }
@@ -118,23 +110,9 @@ fn main(
         if tile_all(live == 0u) {
             break;
         }
-        var head = vec4<f32>(0.0);
-        var conic = vec4<f32>(0.0);
-        if leader {
-            let g = tile_values[k];
-            head = projected[2u * g];
-            conic = projected[2u * g + 1u];
-            for (var c = 0u; c < CHANNELS; c++) {
-                own[c] = features[g * CHANNELS + c];
-            }
-        }
-        head = from_leader_vec4(head);
-        conic = from_leader_vec4(conic);
-        for (var c = 0u; c < CHANNELS; c++) {
-            own[c] = from_leader_f32(own[c]);
-        }
-        live -= blend_quad(&left, row.xs, row.cy, head, conic.xyz, &own, k);
-        live -= blend_quad(&right, row.xs + 4.0, row.cy, head, conic.xyz, &own, k);
+        let entry = load_entry(k, leader, &own);
+        live -= blend_quad(&left, row.xs, row.cy, entry, &own, k);
+        live -= blend_quad(&right, row.xs + 4.0, row.cy, entry, &own, k);
     }
     store_quad(&left, 0u, row.len, row.start);
     store_quad(&right, 4u, row.len, row.start);

@@ -15,10 +15,7 @@
 // list in step, from the longest consumed prefix, so a subgroup sees one Gaussian at a time.
 // Specialised with: CHANNELS, WITH_DEPTH, TILE (must be 8), contract constants.
 
-@group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
-@group(0) @binding(1) var<storage, read> tile_values: array<u32>;
-@group(0) @binding(2) var<storage, read> ranges: array<u32>;
-@group(0) @binding(3) var<storage, read> features: array<f32>;
+// Bindings 0-3 (projected, tile_values, ranges, features): blend_common.wgsl.
 @group(0) @binding(4) var<storage, read> pixel_state: array<u32>;
 // [H*W*C dL/dfeatures][H*W dL/dalpha][H*W dL/ddepth, when WITH_DEPTH].
 @group(0) @binding(5) var<storage, read> image_grads: array<f32>;
@@ -81,27 +78,23 @@ fn load_quad(first: u32, row_len: u32, row_start: u32) -> Quad {
     return q;
 }
 
-// Replays list entry k (Gaussian head, conic, colour own) at the quad's pixels x = xs, y = cy,
-// adding the contributions to sums. Values of pixels the entry does not touch are computed
-// but never selected, so they cannot leak an overflow into the sums.
+// Replays list entry k (`e`, colour `own`) at the quad's pixels x = xs, y = cy, adding the
+// contributions to sums. Values of pixels the entry does not touch are computed but never
+// selected, so they cannot leak an overflow into the sums.
 fn replay_quad(
     q: ptr<function, Quad>,
     xs: vec4<f32>,
     cy: f32,
-    head: vec4<f32>,
-    conic: vec3<f32>,
+    e: Entry,
     own: ptr<function, array<f32, CHANNELS>>,
     k: u32,
     sums: ptr<function, Sums>,
 ) {
-    let dx = xs - head.x;
-    let dy = cy - head.y;
-    let power = gaussian_power(dx, dy, conic);
-    let gauss = exp(power);
-    let raw = head.w * gauss;
-    let alpha = min(vec4<f32>(MAX_ALPHA), raw);
-    let hit = vec4<u32>(k) <= (*q).consumed & power <= vec4<f32>(0.0)
-        & alpha >= vec4<f32>(MIN_ALPHA);
+    let v = evaluate_quad(e, xs, cy);
+    let dx = v.dx;
+    let dy = v.dy;
+    let alpha = v.alpha;
+    let hit = vec4<u32>(k) <= (*q).consumed & v.passes;
     let zero = vec4<f32>(0.0);
     let keep = 1.0 - alpha;
     let t_i = (*q).transmittance / keep;
@@ -117,23 +110,23 @@ fn replay_quad(
         (*q).behind_f[c] = select(behind, behind + w * f, hit);
     }
     if WITH_DEPTH {
-        grad_a += (*q).grad_depth * (head.z * t_i - (*q).behind_d / keep);
+        grad_a += (*q).grad_depth * (e.head.z * t_i - (*q).behind_d / keep);
         (*sums).geometry[6] += sum4(select(zero, w * (*q).grad_depth, hit));
-        (*q).behind_d = select((*q).behind_d, (*q).behind_d + w * head.z, hit);
+        (*q).behind_d = select((*q).behind_d, (*q).behind_d + w * e.head.z, hit);
     }
     // The 0.999 clamp passes no gradient to opacity and power.
-    let unclamped = hit & raw <= vec4<f32>(MAX_ALPHA);
+    let unclamped = hit & v.raw <= vec4<f32>(MAX_ALPHA);
     let grad_power = grad_a * alpha;
     (*sums).geometry[0] += sum4(select(zero, -0.5 * dx * dx * grad_power, unclamped));
     (*sums).geometry[1] += sum4(select(zero, -dx * dy * grad_power, unclamped));
     (*sums).geometry[2] += sum4(select(zero, -0.5 * dy * dy * grad_power, unclamped));
     (*sums).geometry[3] += sum4(
-        select(zero, (conic.x * dx + conic.y * dy) * grad_power, unclamped),
+        select(zero, (e.conic.x * dx + e.conic.y * dy) * grad_power, unclamped),
     );
     (*sums).geometry[4] += sum4(
-        select(zero, (conic.y * dx + conic.z * dy) * grad_power, unclamped),
+        select(zero, (e.conic.y * dx + e.conic.z * dy) * grad_power, unclamped),
     );
-    (*sums).geometry[5] += sum4(select(zero, grad_a * gauss, unclamped));
+    (*sums).geometry[5] += sum4(select(zero, grad_a * v.gauss, unclamped));
     (*sums).touched = (*sums).touched || any(hit);
     (*q).transmittance = select((*q).transmittance, t_i, hit);
 }
@@ -144,7 +137,7 @@ fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
 ) {
-    let tile = wg.x + wg.y * nwg.x;
+    let tile = workgroup_index(wg, nwg);
     if tile >= frame.tiles_x * frame.tiles_y {
         return;
     }
@@ -166,26 +159,10 @@ fn main(
     let leader = leads_tile();
     var own: array<f32, CHANNELS>;
     for (var k = last; k > start; k--) {
-        var g = 0u;
-        var head = vec4<f32>(0.0);
-        var conic = vec4<f32>(0.0);
-        if leader {
-            g = tile_values[k - 1u];
-            head = projected[2u * g];
-            conic = projected[2u * g + 1u];
-            for (var c = 0u; c < CHANNELS; c++) {
-                own[c] = features[g * CHANNELS + c];
-            }
-        }
-        g = from_leader_u32(g);
-        head = from_leader_vec4(head);
-        conic = from_leader_vec4(conic);
-        for (var c = 0u; c < CHANNELS; c++) {
-            own[c] = from_leader_f32(own[c]);
-        }
+        let entry = load_entry(k - 1u, leader, &own);
         var sums = Sums();
-        replay_quad(&left, row.xs, row.cy, head, conic.xyz, &own, k, &sums);
-        replay_quad(&right, row.xs + 4.0, row.cy, head, conic.xyz, &own, k, &sums);
+        replay_quad(&left, row.xs, row.cy, entry, &own, k, &sums);
+        replay_quad(&right, row.xs + 4.0, row.cy, entry, &own, k, &sums);
         for (var c = 0u; c < CHANNELS; c++) {
             sums.features[c] = tile_sum(sums.features[c]);
         }
@@ -194,6 +171,7 @@ fn main(
         }
         let touched = tile_sum(select(0.0, 1.0, sums.touched)) > 0.0;
         if touched && leader {
+            let g = entry.gaussian;
             for (var c = 0u; c < CHANNELS; c++) {
                 add_gradient(base + g * CHANNELS + c, sums.features[c]);
             }

@@ -11,11 +11,6 @@ struct SortParams {
 
 const BINS: u32 = 1u << BITS;
 
-// Index of the thread in a 1D grid of 64-thread workgroups folded into 2D.
-fn sort_thread(gid: vec3<u32>, nwg: vec3<u32>) -> u32 {
-    return gid.x + gid.y * nwg.x * 64u;
-}
-
 // [begin, end) of thread t's chunk of keys.
 fn chunk_of(t: u32) -> vec2<u32> {
     let begin = t * params.chunk;

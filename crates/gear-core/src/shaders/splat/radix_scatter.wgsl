@@ -12,7 +12,7 @@
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let t = sort_thread(gid, nwg);
+    let t = thread_index(gid, nwg, 64u);
     if t >= params.threads {
         return;
     }

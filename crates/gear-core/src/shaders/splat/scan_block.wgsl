@@ -21,7 +21,7 @@ fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
 ) {
-    let block = wg.x + wg.y * nwg.x;
+    let block = workgroup_index(wg, nwg);
     let base = block * WG * ITEMS + lid * ITEMS;
     var local: array<u32, ITEMS>;
     var sum = 0u;

@@ -14,7 +14,7 @@ struct CountParams {
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = gid.x + gid.y * nwg.x * 256u;
+    let i = thread_index(gid, nwg, 256u);
     if i < params.n {
         let g = order[i];
         let r = rects[g];

@@ -14,10 +14,6 @@ fn tile_sum(v: f32) -> f32 {
     return v;
 }
 
-fn from_leader_u32(v: u32) -> u32 {
-    return v;
-}
-
 fn from_leader_f32(v: f32) -> f32 {
     return v;
 }

@@ -18,10 +18,6 @@ fn tile_sum(v: f32) -> f32 {
     return subgroupAdd(v);
 }
 
-fn from_leader_u32(v: u32) -> u32 {
-    return subgroupBroadcastFirst(v);
-}
-
 fn from_leader_f32(v: f32) -> f32 {
     return subgroupBroadcastFirst(v);
 }

@@ -1,0 +1,88 @@
+// Shared by blend.wgsl and blend_backward.wgsl, which must agree on it: the inputs both read,
+// the tile row a thread works on, the fetch of a list entry for all rows of a tile (who loads
+// it is up to tile_share_*.wgsl, included before), and the contract's evaluation of an entry
+// at four pixels of a row.
+
+// Per Gaussian: (u, v, z, opacity), (conic a, b, c, level) (see project.wgsl).
+@group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
+// Per tile, its Gaussians in depth order ([start, end) of each tile in `ranges`).
+@group(0) @binding(1) var<storage, read> tile_values: array<u32>;
+@group(0) @binding(2) var<storage, read> ranges: array<u32>;
+@group(0) @binding(3) var<storage, read> features: array<f32>;
+
+// The pixel row `row` of `tile` that a blend thread works on.
+struct TileRow {
+    // Index of the row's first pixel in the image.
+    start: u32,
+    // Pixels of the row inside the image (0 for a row below it).
+    len: u32,
+    // Pixel-centre y, and the x of the centres of its first four pixels.
+    cy: f32,
+    xs: vec4<f32>,
+}
+
+fn tile_row(tile: u32, row: u32) -> TileRow {
+    let py = (tile / frame.tiles_x) * TILE + row;
+    let x0 = (tile % frame.tiles_x) * TILE;
+    return TileRow(
+        py * frame.width + x0,
+        select(0u, min(TILE, frame.width - x0), py < frame.height),
+        f32(py) + 0.5,
+        f32(x0) + vec4<f32>(0.5, 1.5, 2.5, 3.5),
+    );
+}
+
+// A list entry as every row of the tile sees it.
+struct Entry {
+    // The Gaussian's index: set on the leading row only (leads_tile()).
+    gaussian: u32,
+    // (u, v, z, opacity).
+    head: vec4<f32>,
+    conic: vec3<f32>,
+}
+
+// List entry k, its features into `own`. Call in uniform control flow, with `leader` from
+// leads_tile().
+fn load_entry(k: u32, leader: bool, own: ptr<function, array<f32, CHANNELS>>) -> Entry {
+    var g = 0u;
+    var head = vec4<f32>(0.0);
+    var conic = vec4<f32>(0.0);
+    if leader {
+        g = tile_values[k];
+        head = projected[2u * g];
+        conic = projected[2u * g + 1u];
+        for (var c = 0u; c < CHANNELS; c++) {
+            (*own)[c] = features[g * CHANNELS + c];
+        }
+    }
+    for (var c = 0u; c < CHANNELS; c++) {
+        (*own)[c] = from_leader_f32((*own)[c]);
+    }
+    return Entry(g, from_leader_vec4(head), from_leader_vec4(conic).xyz);
+}
+
+// An entry at four pixels of a row.
+struct QuadEval {
+    // Pixel centres minus the mean.
+    dx: vec4<f32>,
+    dy: f32,
+    // exp(-½ dᵀ conic d).
+    gauss: vec4<f32>,
+    // opacity · gauss, and alpha = that clamped to MAX_ALPHA.
+    raw: vec4<f32>,
+    alpha: vec4<f32>,
+    // The contract's per-pixel guards pass: power <= 0 and alpha >= MIN_ALPHA.
+    passes: vec4<bool>,
+}
+
+// Entry `e` at the pixels x = xs, y = cy.
+fn evaluate_quad(e: Entry, xs: vec4<f32>, cy: f32) -> QuadEval {
+    let dx = xs - e.head.x;
+    let dy = cy - e.head.y;
+    let power = -0.5 * (e.conic.x * dx * dx + e.conic.z * dy * dy) - e.conic.y * dx * dy;
+    let gauss = exp(power);
+    let raw = e.head.w * gauss;
+    let alpha = min(vec4<f32>(MAX_ALPHA), raw);
+    let passes = power <= vec4<f32>(0.0) & alpha >= vec4<f32>(MIN_ALPHA);
+    return QuadEval(dx, dy, gauss, raw, alpha, passes);
+}
