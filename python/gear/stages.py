@@ -326,7 +326,7 @@ class Refine(_Stage):
             + c.lambda_depth * depth_log_l1(anchor.depth, frozen_depth)
         )
         terms["opacity"] = c.lambda_opacity * opacity_binarisation(g["opacity"])
-        terms.update(self._segmentation_terms(logits, rgb))
+        terms.update(self._segmentation_terms(logits))
         check_finite(terms, self.name, it)
         loss = sum(terms.values())
         g.optimizer.zero_grad(set_to_none=True)
@@ -338,19 +338,19 @@ class Refine(_Stage):
             self.motion_optimizer.step()
         return {k: v.item() for k, v in terms.items()}
 
-    def _segmentation_terms(self, logits: torch.Tensor, rgb: torch.Tensor) -> dict:
+    def _segmentation_terms(self, logits: torch.Tensor) -> dict:
         """E-step: region-voted pseudo-labels on a rendered logit image (CE) + KNN smoothness."""
         c, g = self.config, self.gaussians
         terms = {"knn": c.lambda_knn * knn_consistency_loss(logits, self.neighbours())}
         if not self.region_views:
             return terms
         view = self._pick(self.region_views)
-        k = g.num_parts
-        out = render(
-            g["means"], g["quats"], g["log_scales"], g["opacity"],
-            torch.cat([rgb.detach(), logits], dim=1), view.camera, torch.zeros(3 + k),
-        )
-        logit_image = out.features[..., 3:]
+        # Only the K logit channels: blending is per channel, so the colour channels the
+        # image used to carry along changed nothing but the cost of the render.
+        logit_image = render(
+            g["means"], g["quats"], g["log_scales"], g["opacity"], logits, view.camera,
+            torch.zeros(g.num_parts),
+        ).features
         prob = torch.softmax(logit_image.detach(), dim=-1).numpy()
         labels = region_pseudo_labels(
             prob, view.regions, self.motion.prismatic.numpy(), gamma=c.gamma_prism,
