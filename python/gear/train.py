@@ -298,8 +298,12 @@ class Trainer:
             "notes": list(init.notes),
         }
         for state in STATES:
-            self.log.say(f"stage2: {int(keep[state].sum())} of {len(keep[state])} {state} "
-                         f"centres (opacity > {STAGE2_MIN_OPACITY} unless too few pass)")
+            opaque = int((torch.sigmoid(self.models[state]["opacity"].detach())
+                          > STAGE2_MIN_OPACITY).sum())
+            used = int(keep[state].sum())
+            reason = "opaque" if used == opaque else "all: under half opaque, not yet binarised"
+            self.log.say(f"stage2: {used} of {len(keep[state])} {state} centres ({reason}; "
+                         f"{opaque} above opacity {STAGE2_MIN_OPACITY})")
         for note in init.notes:
             self.log.say(f"stage2: {note}")
         self.log.say(f"stage2: canonical state '{init.canonical}', {init.num_parts} part(s)")
