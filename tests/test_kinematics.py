@@ -322,6 +322,24 @@ def test_resolve_ambiguous_joint_picks_lowest_score():
         resolve_ambiguous_joint(motion, 1, lambda _: float("nan"))
 
 
+def test_resolve_ambiguous_joint_keeps_the_tuned_winner():
+    """A scorer that fine-tunes its candidate: the motion gets the tuned reading it scored."""
+    motion = PartMotion.from_rt([hinge_rt([0, 0, 1], [0.5, 0, 0], 4.0)])
+    tuned_t = torch.tensor([0.31, 0.02, 0.0])
+
+    def tune_then_score(candidate):  # stands in for Refine.motion_loss (tune, then render)
+        if bool(candidate.prismatic[1]):
+            qr, qd = dq_of(np.eye(3)[None], tuned_t.numpy()[None], torch.float32)
+            candidate.set_part(1, qr[0], qd[0], prismatic=True)
+            return 0.0
+        return 1.0
+
+    assert resolve_ambiguous_joint(motion, 1, tune_then_score).name == "prismatic"
+    assert bool(motion.prismatic[1])
+    joint = motion.joints(np.zeros(3))[0]  # the untuned slide would travel 0.035 along -y
+    assert joint["distance"] == pytest.approx(float(tuned_t.norm()), abs=1e-5)
+
+
 def test_deform_gradcheck():
     """Analytic gradients of the blended deformation match finite differences (float64)."""
     rot, trans = hinge_rt([0.3, 1.0, -0.2], [0.2, 0.1, 0.0], 75.0)

@@ -445,10 +445,11 @@ def resolve_ambiguous_joint(
 
     `score(candidate)` gets a copy of `motion` with part k set to one hypothesis of
     joint_hypotheses(motion, k, extra) and returns its photometric + depth loss (lower is
-    better; it may fine-tune the copy first). The winner is written into `motion` and returned.
-    Ground truth plays no part.
+    better; it may fine-tune the copy first). The winner's part k, as the scorer left it (tuned,
+    when it tunes: the reading it scored, not the untuned guess), is written into `motion`, and
+    its hypothesis returned. Ground truth plays no part.
     """
-    best: tuple[float, JointHypothesis] | None = None
+    best: tuple[float, JointHypothesis, PartMotion] | None = None
     for hyp in joint_hypotheses(motion, k, extra):
         candidate = copy.deepcopy(motion)
         candidate.set_part(k, hyp.qr, hyp.qd, hyp.prismatic)
@@ -456,7 +457,9 @@ def resolve_ambiguous_joint(
         if not math.isfinite(value):
             raise ValueError(f"score: non-finite loss {value} for the {hyp.name} hypothesis")
         if best is None or value < best[0]:
-            best = (value, hyp)
+            best = (value, hyp, candidate)
     assert best is not None
-    motion.set_part(k, best[1].qr, best[1].qd, best[1].prismatic)
-    return best[1]
+    _, hyp, winner = best
+    qr, qd = winner.motion()
+    motion.set_part(k, qr[k].detach(), qd[k].detach(), hyp.prismatic)
+    return hyp
