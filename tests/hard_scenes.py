@@ -37,6 +37,10 @@ COMPRESSED_QUICK = dict(
     init_max_points=1500, max_gaussians=2500, checkpoint_every=10_000,
 )
 FULL_QUICK = os.environ.get("GEAR_HARD_QUICK") == "1"
+# The quick profile's own stage-1 schedule (300 iterations, densifying from 100 to 250 every 50),
+# for cases whose stage 1 needs more than the compressed 70 iterations.
+STAGE1_QUICK = {name: getattr(make_config("quick"), name) for name in
+                ("stage1_iterations", "densify_from", "densify_until", "densify_interval")}
 
 
 def hard_config(**overrides: object) -> TrainConfig:

@@ -21,13 +21,13 @@ import torch
 
 from gear import _core
 from gear.coarse import coarse_init
-from gear.config import make_config
 from gear.em import classify_joints
 from gear.kinematics import PartMotion
 from gear.metrics import match_parts
 from gear.model import Gaussians
 from gear.stages import Refine
 from hard_scenes import (
+    STAGE1_QUICK,
     Run,
     axis_angle_deg,
     backprojected,
@@ -258,7 +258,13 @@ CASES: dict[str, Case] = {
     "handle": Case("handle", res=64, config=dict(num_parts=2, opacity_reset_interval=30,
                                                   stage3_densify_until=61)),
     "fridge_flawed_masks": Case("fridge", effects=("mask-over", "mask-under")),
-    "fridge_no_depth": Case("fridge", depth=False),
+    # Without depth, stage 1 learns the geometry from colour alone, starting from the surface of
+    # the masks' visual hull: it runs the quick profile's own stage-1 schedule (300 iterations;
+    # stages 2-3 stay compressed). In the compressed 70 the Gaussians barely leave the hull, which
+    # cannot carve the hollow between the open door and the body: stage 2 then found no door
+    # hinge with 8, 16 or 24 views (measured). With 300, the volume-sampled hull used before
+    # still failed (Geo Dist 60 and 129 degrees on seeds 0 and 1).
+    "fridge_no_depth": Case("fridge", depth=False, config=dict(STAGE1_QUICK)),
     # The door turned by 2 degrees: its edge moves 2.4 cm, under a pixel at 32 px. K = 2 given.
     "door_2deg": Case("fridge", values={"door": (0.15, 0.15 + math.radians(2.0))},
                       config=dict(num_parts=2)),
@@ -406,14 +412,20 @@ def test_fridge_without_depth_trains_finite(runs):
 
 
 @GPU
-@pytest.mark.xfail(strict=True, reason=(
-    "stage 1 without depth (visual hull of 8 views at 32 px) leaves the door a blob up to 0.3 m "
-    "thick, split in two in the closed state; stage 2 finds no trusted hinge and starts a slide, "
-    "which stage 3 turns into a small hinge; measured: revolute 7.3 deg, Axis Ang 9.2 deg, Geo "
-    "Dist 58.7 deg (compressed schedule); revolute 6.7 deg, Axis Ang 12.2 deg, Geo Dist 59.4 deg "
-    "(the whole quick schedule)"))
+@pytest.mark.xfail(strict=False, reason=(
+    "not reliable yet: with stage 1 started on the visual hull's surface and the silhouette "
+    "loss, this scene (scene seed 0) passed 7 of 9 runs over training seeds 0-2 (Geo Dist <= 12 "
+    "deg), but other renders of the fridge (scene seeds 1, 2) fail in most runs (stage 2 slides "
+    "the door or stage 3 keeps a slide; Geo Dist 62-150 deg), and one seed passes or fails from "
+    "run to run (GPU atomics). The hull cannot carve the hollow between the open door and the "
+    "body, and colour alone at 32 px leaves the rendered depth 0.07-0.12 m off (0.04 m with "
+    "depth)"))
 def test_fridge_without_depth_finds_the_door(runs):
-    """Without depth, the door hinge within 10 degrees of axis and 15 degrees of rotation."""
+    """Without depth (8 views per state at 32 px, masks and colour only), the door hinge within
+    10 degrees of axis and 15 degrees of rotation (Geo Dist). Before stage 1 started from the
+    hull's surface (it sampled the hull's volume) it never passed: the door came out a blob up
+    to 0.3 m thick and the hinge a 7-degree turn about a wrong axis, Geo Dist 59 degrees
+    (measured)."""
     run, _ = runs.get("fridge_no_depth")
     pairs, matching = matched(run)
     assert len(pairs) == 1 and not matching.type_mismatches, (matching, run.joints)
@@ -436,10 +448,7 @@ def test_identical_states_give_one_static_part_and_no_joint(tmp_path):
     obj = variant("fridge", {"door": (0.6, 0.6)})
     scene = make_scene(tmp_path / "scene", obj, 32, 2 * TRAIN_VIEWS)
     out = tmp_path / "out"
-    quick = make_config("quick")
-    stage1 = {name: getattr(quick, name) for name in
-              ("stage1_iterations", "densify_from", "densify_until", "densify_interval")}
-    result = train(scene, out, hard_config(**stage1), quiet=True)
+    result = train(scene, out, hard_config(**STAGE1_QUICK), quiet=True)
     assert result.joints == []
     saved = json.loads((out / "joints.json").read_text())
     assert saved["joints"] == []
