@@ -90,7 +90,7 @@ class TrainConfig:
     # --- initialisation (stage 1) ---
     init_voxel_fraction: float = 0.005  # depth back-projection downsampling, x scene extent
     init_max_points: int = 100_000
-    random_init_points: int = 100_000  # visual-hull candidates when the scene has no depth
+    random_init_points: int = 100_000  # visual-hull grid cells when the scene has no depth
 
     # --- learning rates (Adam) ---
     lr_means: float = 1.6e-4  # x scene extent, decays exponentially to lr_means_final
