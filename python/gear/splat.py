@@ -117,8 +117,8 @@ class _Rasterize(torch.autograd.Function):
     def backward(ctx: Any, *grads: Tensor) -> tuple[Tensor | None, ...]:
         grad_depth = _numpy(grads[2].float()) if ctx.depth else None
         wanted = ctx.needs_input_grad[:5]
-        # Constant features (e.g. detached colours) skip their gradients, the backward's
-        # per-channel cost; the image gradient w.r.t. them still shapes the others.
+        # Constant features (e.g. detached colours) skip their gradients, a per-channel cost of
+        # the backward; the feature image's gradient still enters the others.
         arrays = _core.rasterize_backward(
             ctx.state,
             _numpy(grads[0].float()),

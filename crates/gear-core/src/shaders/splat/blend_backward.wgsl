@@ -15,8 +15,8 @@
 // list in step, from the longest consumed prefix, so a subgroup sees one Gaussian at a time.
 // Specialised with: CHANNELS, WITH_DEPTH, FEATURE_GRADS, TILE (must be 8), contract constants.
 // Without FEATURE_GRADS (a caller whose features need no gradient) the features are still read,
-// since dL/dalpha depends on them, but their gradients are neither summed nor added: with many
-// channels those sums and atomics cost more than all the geometry's.
+// since dL/dalpha depends on them, but their gradients are neither summed nor added (per
+// channel, a sum over the tile and an atomic per Gaussian the tile touches).
 
 // Bindings 0-3 (projected, tile_values, ranges, features): blend_common.wgsl.
 @group(0) @binding(4) var<storage, read> pixel_state: array<u32>;
