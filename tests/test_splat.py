@@ -236,6 +236,37 @@ def test_gradients_only_for_inputs_that_require_them():
     assert scene.features.grad.abs().sum() > 0 and scene.log_scales.grad.abs().sum() > 0
 
 
+
+@pytest.mark.parametrize("channels", [1, 5])
+def test_detached_features_leave_geometry_gradients_unchanged(channels):
+    # Detached features skip their gradients in the kernel; the geometry's must not change
+    # (beyond the float32 rounding of atomics adding in another order).
+    scene = random_scene(300, channels, seed=23)
+    cam = camera(40, 30)
+    geometry = [a.requires_grad_(True) for a in scene.arrays()[:4]]
+    grads = []
+    for features in (scene.features.clone().requires_grad_(True), scene.features):
+        out = splat.rasterize(*geometry, features, cam, background(channels), depth=True)
+        loss = weighted_loss(out, loss_weights(out, seed=5))
+        grads.append(torch.autograd.grad(loss, geometry))
+    for name, with_features, detached in zip(ARRAYS, *grads, strict=False):
+        assert with_features.abs().sum() > 0, name
+        rel = relative_l2(detached, with_features)
+        assert rel <= 1e-6, f"d{name}: detached vs attached features relative L2 {rel:.2e}"
+
+
+def test_backward_without_feature_gradients_returns_none_for_them():
+    scene = random_scene(30, 3, seed=9)
+    args = core_args(scene, camera(20, 16), background(3), False)
+    *outputs, state = _core.rasterize_forward(*args)
+    weights = [np.ones_like(img) for img in outputs[:2]]
+    full = _core.rasterize_backward(state, *weights)
+    partial = _core.rasterize_backward(state, *weights, features_grad=False)
+    assert full[4].shape == (30, 3) and partial[4] is None
+    for name, a, b in zip(ARRAYS[:4], full, partial, strict=False):
+        assert relative_l2(torch.from_numpy(b), torch.from_numpy(a)) <= 1e-6, name
+
+
 # --- bad input -----------------------------------------------------------------------------
 
 

@@ -116,10 +116,16 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, *grads: Tensor) -> tuple[Tensor | None, ...]:
         grad_depth = _numpy(grads[2].float()) if ctx.depth else None
-        arrays = _core.rasterize_backward(
-            ctx.state, _numpy(grads[0].float()), _numpy(grads[1].float()), grad_depth
-        )
         wanted = ctx.needs_input_grad[:5]
+        # Constant features (e.g. detached colours) skip their gradients, a per-channel cost of
+        # the backward; the feature image's gradient still enters the others.
+        arrays = _core.rasterize_backward(
+            ctx.state,
+            _numpy(grads[0].float()),
+            _numpy(grads[1].float()),
+            grad_depth,
+            features_grad=wanted[4],
+        )
         input_grads = tuple(
             torch.from_numpy(g) if need else None for g, need in zip(arrays, wanted, strict=True)
         )

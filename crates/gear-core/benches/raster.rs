@@ -124,7 +124,7 @@ fn time(n: usize, size: u32, repeats: usize) -> Timing {
         let (_, state) = forward(&scene.view(), &cam, &options).expect("forward");
         let middle = Instant::now();
         let cpu1 = cpu_ms();
-        backward(&state, &grads, Accumulation::Auto).expect("backward");
+        backward(&state, &grads, Accumulation::Auto, true).expect("backward");
         let end = Instant::now();
         let cpu2 = cpu_ms();
         pairs = state.pairs;

@@ -159,14 +159,16 @@ type Gradients<'py> = (
     Bound<'py, PyAny>,
     Bound<'py, PyAny>,
     Bound<'py, PyAny>,
-    Bound<'py, PyAny>,
+    Option<Bound<'py, PyAny>>,
 );
 
-/// Gradients as numpy arrays shaped like the inputs.
+/// Gradients as numpy arrays shaped like the inputs; the features' only when
+/// `features_grad` (else None: they were not computed).
 fn gradients<'py, T: Element + Copy>(
     py: Python<'py>,
     g: GaussianGradients<T>,
     channels: usize,
+    features_grad: bool,
 ) -> PyResult<Gradients<'py>> {
     let n = g.opacity_logits.len();
     let flat = |rows: Vec<T>, width: usize| PyArray1::from_vec(py, rows).reshape([n, width]);
@@ -175,7 +177,10 @@ fn gradients<'py, T: Element + Copy>(
         flat(g.quats.concat(), 4)?.into_any(),
         flat(g.log_scales.concat(), 3)?.into_any(),
         PyArray1::from_vec(py, g.opacity_logits).into_any(),
-        flat(g.features, channels)?.into_any(),
+        features_grad
+            .then(|| flat(g.features, channels))
+            .transpose()?
+            .map(Bound::into_any),
     ))
 }
 
@@ -345,14 +350,17 @@ fn wrong_state(expected: &str) -> PyErr {
 }
 
 /// Gradients of the GPU render that produced `state` (float32 arrays shaped like the inputs).
+/// With `features_grad=False` the feature gradients are skipped (returned as None), which
+/// is cheaper and leaves the other gradients unchanged.
 #[pyfunction]
-#[pyo3(signature = (state, grad_features, grad_alpha, grad_depth=None))]
+#[pyo3(signature = (state, grad_features, grad_alpha, grad_depth=None, features_grad=true))]
 fn rasterize_backward<'py>(
     py: Python<'py>,
     state: &Bound<'py, RasterState>,
     grad_features: &Bound<'py, PyAny>,
     grad_alpha: &Bound<'py, PyAny>,
     grad_depth: Option<&Bound<'py, PyAny>>,
+    features_grad: bool,
 ) -> PyResult<Gradients<'py>> {
     let state = state.get();
     let StateKind::Gpu(forward) = &state.kind else {
@@ -365,8 +373,10 @@ fn rasterize_backward<'py>(
     } else {
         Accumulation::Auto
     };
-    let g = guarded(py, || splat::backward(forward, &view, accumulation))?;
-    gradients(py, g, state.channels)
+    let g = guarded(py, || {
+        splat::backward(forward, &view, accumulation, features_grad)
+    })?;
+    gradients(py, g, state.channels, features_grad)
 }
 
 /// Gradients of the reference render that produced `state` (float64; image gradients may be
@@ -416,7 +426,7 @@ fn reference_backward<'py>(
             &view,
         )
     })?;
-    gradients(py, g, state.channels)
+    gradients(py, g, state.channels, true)
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {

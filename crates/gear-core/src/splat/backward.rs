@@ -25,12 +25,16 @@ pub enum Accumulation {
 }
 
 /// Gradients of a loss with respect to the inputs of the forward pass that made `state`.
+/// Without `features_grad` the feature gradients are not computed (`features` comes back
+/// empty) and the others are unchanged: for callers whose features are constants, as the
+/// backward's cost grows with the channel count.
 pub fn backward(
     state: &ForwardState,
     grads: &OutputGradients<f32>,
     accumulation: Accumulation,
+    features_grad: bool,
 ) -> Result<GaussianGradients<f32>> {
-    backward_impl(state, grads, accumulation, true, false)
+    backward_impl(state, grads, accumulation, features_grad, true, false)
 }
 
 /// [`backward`], optionally without subgroup operations even where the adapter has them, and
@@ -39,6 +43,7 @@ pub(crate) fn backward_impl(
     state: &ForwardState,
     grads: &OutputGradients<f32>,
     accumulation: Accumulation,
+    features_grad: bool,
     allow_subgroups: bool,
     poison: bool,
 ) -> Result<GaussianGradients<f32>> {
@@ -71,7 +76,9 @@ pub(crate) fn backward_impl(
     }
     let image_grads = ctx.upload(&packed)?;
     let geometry = ctx.storage::<f32>(n * GEOMETRY_STRIDE)?;
-    let total = n * (GEOMETRY_OUTPUTS + channels);
+    // Without feature gradients the packed output ends before the features.
+    let out_channels = if features_grad { channels } else { 0 };
+    let total = n * (GEOMETRY_OUTPUTS + out_channels);
     let gradients = ctx.storage::<f32>(total)?;
     if poison {
         ctx.fill(&gradients, f32::NAN);
@@ -82,17 +89,19 @@ pub(crate) fn backward_impl(
     let mut encoder = ctx.device.create_command_encoder(&Default::default());
     encoder.clear_buffer(&geometry.buffer, 0, Some(geometry.size));
     // Features are accumulated; the geometric part is written whole by project-backward.
-    let feature_offset = (n * GEOMETRY_OUTPUTS * 4) as u64;
-    encoder.clear_buffer(
-        &gradients.buffer,
-        feature_offset,
-        Some(gradients.size - feature_offset),
-    );
+    if features_grad {
+        let feature_offset = (n * GEOMETRY_OUTPUTS * 4) as u64;
+        encoder.clear_buffer(
+            &gradients.buffer,
+            feature_offset,
+            Some(gradients.size - feature_offset),
+        );
+    }
     let frame = state.frame_buffer.as_entire_binding();
     dispatch(
         ctx,
         &mut encoder,
-        &kernels::blend_backward(state.variant, float_atomics, subgroups),
+        &kernels::blend_backward(state.variant, float_atomics, subgroups, features_grad),
         &[
             (0, storage(&state.projected)),
             (1, storage(&state.tile_values)),
@@ -125,10 +134,11 @@ pub(crate) fn backward_impl(
     ctx.queue.submit(Some(encoder.finish()));
     let values = ctx.read::<f32>(&gradients, total)?;
     drop((image_grads, geometry));
-    Ok(unpack(&values, n, channels))
+    Ok(unpack(&values, n, out_channels))
 }
 
-/// Splits the packed readback [means 3N | quats 4N | log_scales 3N | opacity N | features CN].
+/// Splits the packed readback [means 3N | quats 4N | log_scales 3N | opacity N | features CN]
+/// (C = 0 when feature gradients were not computed).
 fn unpack(values: &[f32], n: usize, channels: usize) -> GaussianGradients<f32> {
     let (means, rest) = values.split_at(3 * n);
     let (quats, rest) = rest.split_at(4 * n);

@@ -154,15 +154,23 @@ pub fn blend(variant: PixelVariant, subgroups: bool) -> ShaderSpec {
 }
 
 /// Blend backward accumulating with native f32 atomics or with a compare-and-swap loop, the
-/// rows of a tile summed over subgroups first (needs the SUBGROUP feature) or not.
-pub fn blend_backward(variant: PixelVariant, float_atomics: bool, subgroups: bool) -> ShaderSpec {
+/// rows of a tile summed over subgroups first (needs the SUBGROUP feature) or not, adding
+/// feature gradients only with `features_grad`.
+pub fn blend_backward(
+    variant: PixelVariant,
+    float_atomics: bool,
+    subgroups: bool,
+    features_grad: bool,
+) -> ShaderSpec {
     let (name, source) = match (float_atomics, subgroups) {
         (true, true) => ("splat_blend_backward_f32_sg", BLEND_BACKWARD_FLOAT_SUBGROUP),
         (true, false) => ("splat_blend_backward_f32", BLEND_BACKWARD_FLOAT_ROWS),
         (false, true) => ("splat_blend_backward_cas_sg", BLEND_BACKWARD_CAS_SUBGROUP),
         (false, false) => ("splat_blend_backward_cas", BLEND_BACKWARD_CAS_ROWS),
     };
-    variant.apply(ShaderSpec::new(name, source, "main"))
+    variant
+        .apply(ShaderSpec::new(name, source, "main"))
+        .with("FEATURE_GRADS", features_grad)
 }
 
 fn scan_spec(name: &'static str, source: &'static str) -> ShaderSpec {

@@ -243,7 +243,15 @@ fn gradients(
         alpha: &img[1][..],
         depth: depth.then_some(&img[2][..]),
     };
-    let gpu = backward_impl(&state, &grads, path.accumulation, path.subgroups, true).unwrap();
+    let gpu = backward_impl(
+        &state,
+        &grads,
+        path.accumulation,
+        true,
+        path.subgroups,
+        true,
+    )
+    .unwrap();
     let wide: Vec<Vec<f64>> = img
         .iter()
         .map(|v| v.iter().map(|&x| f64::from(x)).collect())
@@ -335,6 +343,69 @@ fn gradients_match_reference() {
     }
 }
 
+/// The geometric gradients (means, quats, log_scales, opacity) as one flat array.
+fn geometry_gradients(g: &GaussianGradients<f32>) -> Vec<f32> {
+    let mut flat: Vec<f32> = bytemuck::cast_slice(&g.means).to_vec();
+    flat.extend_from_slice(bytemuck::cast_slice(&g.quats));
+    flat.extend_from_slice(bytemuck::cast_slice(&g.log_scales));
+    flat.extend_from_slice(&g.opacity_logits);
+    flat
+}
+
+/// Skipping the feature gradients leaves the others as they were: every geometric gradient
+/// within 1e-6 of the full backward's (relative to the largest; the atomics add in no fixed
+/// order, so bit equality is not promised) on every path, and no feature gradients come back.
+#[test]
+fn features_grad_off_keeps_other_gradients() {
+    let cam = camera(90, 70);
+    for channels in [1usize, 5] {
+        for depth in [false, true] {
+            let scene = random_scene(1000, channels, 40 + channels as u64);
+            let opts = options(channels, depth);
+            let img = random_image_grads(cam.pixels(), channels, 41);
+            let grads = OutputGradients {
+                features: &img[0][..],
+                alpha: &img[1][..],
+                depth: depth.then_some(&img[2][..]),
+            };
+            for path in backward_paths() {
+                let (_, state) =
+                    forward_impl(&scene.view(), &cam, &opts, path.subgroups, true).unwrap();
+                let run = |features_grad| {
+                    let accumulation = path.accumulation;
+                    backward_impl(
+                        &state,
+                        &grads,
+                        accumulation,
+                        features_grad,
+                        path.subgroups,
+                        true,
+                    )
+                    .unwrap()
+                };
+                let (on, off) = (run(true), run(false));
+                let case = format!("C={channels} depth={depth} {path:?}");
+                assert_eq!(on.features.len(), 1000 * channels, "{case}");
+                assert!(
+                    off.features.is_empty(),
+                    "{case}: feature gradients returned"
+                );
+                let (on, off) = (geometry_gradients(&on), geometry_gradients(&off));
+                assert!(all_finite(&off), "{case}: non-finite gradient");
+                let scale = on.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+                assert!(scale > 0.0, "{case}: no geometric gradient to compare");
+                let wide: Vec<f64> = on.iter().map(|&v| f64::from(v)).collect();
+                let diff = max_abs_diff(&off, &wide);
+                eprintln!("features_grad off vs on {case}: max diff {diff:e} of {scale:e}");
+                assert!(
+                    diff <= 1e-6 * f64::from(scale),
+                    "{case}: {diff:e} of {scale:e}"
+                );
+            }
+        }
+    }
+}
+
 /// A camera at the origin looking down +z (world = camera space), for placing hard cases.
 fn origin_camera(width: u32, height: u32) -> Camera {
     Camera {
@@ -386,7 +457,15 @@ fn check_finite(
                 "{name} {path:?}: forward differs from reference {err:?}"
             );
         }
-        let g = backward_impl(&state, &grads, path.accumulation, path.subgroups, true).unwrap();
+        let g = backward_impl(
+            &state,
+            &grads,
+            path.accumulation,
+            true,
+            path.subgroups,
+            true,
+        )
+        .unwrap();
         assert!(gradients_finite(&g), "{name} {path:?}: non-finite gradient");
         last = Some(g);
     }

@@ -280,6 +280,6 @@ pub struct GaussianGradients<T> {
     pub quats: Vec<[T; 4]>,
     pub log_scales: Vec<[T; 3]>,
     pub opacity_logits: Vec<T>,
-    /// N x C, row-major.
+    /// N x C, row-major; empty when the GPU backward was asked for no feature gradients.
     pub features: Vec<T>,
 }

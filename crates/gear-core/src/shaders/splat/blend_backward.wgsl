@@ -13,7 +13,10 @@
 // totalled over the subgroup. Without them every row does both itself (tile_share_rows.wgsl).
 // Either way each row first sums its pixels' contributions, and all rows of a tile walk its
 // list in step, from the longest consumed prefix, so a subgroup sees one Gaussian at a time.
-// Specialised with: CHANNELS, WITH_DEPTH, TILE (must be 8), contract constants.
+// Specialised with: CHANNELS, WITH_DEPTH, FEATURE_GRADS, TILE (must be 8), contract constants.
+// Without FEATURE_GRADS (a caller whose features need no gradient) the features are still read,
+// since dL/dalpha depends on them, but their gradients are neither summed nor added (per
+// channel, a sum over the tile and an atomic per Gaussian the tile touches).
 
 // Bindings 0-3 (projected, tile_values, ranges, features): blend_common.wgsl.
 @group(0) @binding(4) var<storage, read> pixel_state: array<u32>;
@@ -106,7 +109,9 @@ fn replay_quad(
         let f = (*own)[c];
         let behind = (*q).behind_f[c];
         grad_a += (*q).grad_f[c] * (f * t_i - behind / keep);
-        (*sums).features[c] += sum4(select(zero, w * (*q).grad_f[c], hit));
+        if FEATURE_GRADS {
+            (*sums).features[c] += sum4(select(zero, w * (*q).grad_f[c], hit));
+        }
         (*q).behind_f[c] = select(behind, behind + w * f, hit);
     }
     if WITH_DEPTH {
@@ -163,8 +168,10 @@ fn main(
         var sums = Sums();
         replay_quad(&left, row.xs, row.cy, entry, &own, k, &sums);
         replay_quad(&right, row.xs + 4.0, row.cy, entry, &own, k, &sums);
-        for (var c = 0u; c < CHANNELS; c++) {
-            sums.features[c] = tile_sum(sums.features[c]);
+        if FEATURE_GRADS {
+            for (var c = 0u; c < CHANNELS; c++) {
+                sums.features[c] = tile_sum(sums.features[c]);
+            }
         }
         for (var q = 0u; q < 7u; q++) {
             sums.geometry[q] = tile_sum(sums.geometry[q]);
@@ -172,8 +179,10 @@ fn main(
         let touched = tile_sum(select(0.0, 1.0, sums.touched)) > 0.0;
         if touched && leader {
             let g = entry.gaussian;
-            for (var c = 0u; c < CHANNELS; c++) {
-                add_gradient(base + g * CHANNELS + c, sums.features[c]);
+            if FEATURE_GRADS {
+                for (var c = 0u; c < CHANNELS; c++) {
+                    add_gradient(base + g * CHANNELS + c, sums.features[c]);
+                }
             }
             for (var q = 0u; q < 6u; q++) {
                 add_geometry(8u * g + q, sums.geometry[q]);
