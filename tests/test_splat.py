@@ -8,6 +8,10 @@ reference in float64.
 """
 
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -309,3 +313,48 @@ def test_bad_camera_and_background_are_rejected():
         splat.rasterize(*scene.arrays(), camera(), background=torch.zeros(2))
     with pytest.raises(ValueError, match=r"'background'.*non-finite"):
         splat.rasterize(*scene.arrays(), camera(), background=torch.full((3,), float("inf")))
+
+
+FALLBACK_RENDER = """
+import sys
+import numpy as np
+import torch
+sys.path.insert(0, sys.argv[2])
+from gear import _core, splat
+from splat_scenes import camera, random_scene
+info = _core.adapter_info()
+scene = random_scene(400, 3, seed=21).to(torch.float32, requires_grad=True)
+cam = camera(40, 32)
+out = splat.rasterize(*scene.arrays(), cam, torch.tensor([0.1, 0.3, 0.6]), True)
+(out.features.sum() + out.depth.sum()).backward()
+np.savez(sys.argv[1], subgroups=info["subgroups"], atomics=info["float32_atomics"],
+         image=out.features.detach().numpy(), depth=out.depth.detach().numpy(),
+         **{f"d_{i}": a.grad.numpy() for i, a in enumerate(scene.arrays())})
+"""
+
+
+def test_disabled_features_take_the_fallback_paths_with_the_same_result(tmp_path):
+    """GEAR_DISABLE_FEATURES=subgroups,float32_atomics: the adapter reports both off and the
+    per-row blend + compare-and-swap paths render the same image and gradients (1e-5 image,
+    1e-4 relative L2 gradients: atomics sum in another order) as the default process; a
+    misspelt feature is a clear error, not a silent no-op."""
+    tests_dir = str(Path(__file__).parent)
+    results = {}
+    for label, disable in (("default", ""), ("fallback", "subgroups, float32_atomics")):
+        env = {**os.environ, "GEAR_DISABLE_FEATURES": disable}
+        path = tmp_path / f"{label}.npz"
+        run = subprocess.run([sys.executable, "-c", FALLBACK_RENDER, str(path), tests_dir],
+                             env=env, capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+        results[label] = np.load(path)
+    assert not results["fallback"]["subgroups"] and not results["fallback"]["atomics"]
+    default, fallback = results["default"], results["fallback"]
+    for name in ("image", "depth"):
+        np.testing.assert_allclose(fallback[name], default[name], atol=1e-5, err_msg=name)
+    for i, name in enumerate(ARRAYS):
+        rel = relative_l2(torch.from_numpy(fallback[f"d_{i}"]), torch.from_numpy(default[f"d_{i}"]))
+        assert rel <= 1e-4, f"d{name}: {rel:.2e}"
+    env = {**os.environ, "GEAR_DISABLE_FEATURES": "subgroup"}
+    run = subprocess.run([sys.executable, "-c", "from gear import _core; _core.adapter_info()"],
+                         env=env, capture_output=True, text=True)
+    assert run.returncode != 0 and "unknown feature \"subgroup\"" in run.stderr, run.stderr

@@ -49,7 +49,9 @@ static CONTEXT: OnceLock<std::result::Result<GpuContext, String>> = OnceLock::ne
 
 impl GpuContext {
     /// The process-wide context, created on first use. `GEAR_ADAPTER` (`cpu`, `gpu`, or a
-    /// substring of the adapter name) forces a choice.
+    /// substring of the adapter name) forces a choice; `GEAR_DISABLE_FEATURES` (a comma list of
+    /// `float32_atomics`, `subgroups`, `timestamps`) leaves optional features off, so the
+    /// kernels take their fallback paths (a driver bug workaround, and a way to compare paths).
     pub fn global() -> Result<&'static GpuContext> {
         CONTEXT
             .get_or_init(|| Self::create().map_err(|e| e.to_string()))
@@ -64,14 +66,12 @@ impl GpuContext {
         let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY));
         let wanted = std::env::var("GEAR_ADAPTER").unwrap_or_default();
         let adapter = choose_adapter(adapters, wanted.trim())?;
+        let disabled =
+            disabled_features(&std::env::var("GEAR_DISABLE_FEATURES").unwrap_or_default())?;
         let available = adapter.features();
         let mut required = wgpu::Features::empty();
-        for optional in [
-            wgpu::Features::SHADER_FLOAT32_ATOMIC,
-            wgpu::Features::SUBGROUP,
-            wgpu::Features::TIMESTAMP_QUERY,
-        ] {
-            if available.contains(optional) {
+        for (_, optional) in OPTIONAL_FEATURES {
+            if available.contains(optional) && !disabled.contains(optional) {
                 required |= optional;
             }
         }
@@ -120,6 +120,32 @@ impl GpuContext {
     }
 }
 
+/// The optional features the kernels use when the adapter has them, by their user-facing name.
+const OPTIONAL_FEATURES: [(&str, wgpu::Features); 3] = [
+    ("float32_atomics", wgpu::Features::SHADER_FLOAT32_ATOMIC),
+    ("subgroups", wgpu::Features::SUBGROUP),
+    ("timestamps", wgpu::Features::TIMESTAMP_QUERY),
+];
+
+/// The features named in `spec` (comma-separated, blanks ignored); an unknown name is an error
+/// listing the valid ones, so a typo cannot silently leave a feature on.
+fn disabled_features(spec: &str) -> Result<wgpu::Features> {
+    let mut disabled = wgpu::Features::empty();
+    for name in spec.split(',').map(str::trim).filter(|n| !n.is_empty()) {
+        let (_, feature) = OPTIONAL_FEATURES
+            .iter()
+            .find(|(known, _)| known.eq_ignore_ascii_case(name))
+            .ok_or_else(|| {
+                let known: Vec<&str> = OPTIONAL_FEATURES.iter().map(|(n, _)| *n).collect();
+                GearError::Gpu(format!(
+                    "GEAR_DISABLE_FEATURES: unknown feature {name:?}; expected some of {known:?}"
+                ))
+            })?;
+        disabled |= *feature;
+    }
+    Ok(disabled)
+}
+
 fn is_software(info: &wgpu::AdapterInfo) -> bool {
     info.device_type == wgpu::DeviceType::Cpu
 }
@@ -155,4 +181,23 @@ fn choose_adapter(adapters: Vec<wgpu::Adapter>, wanted: &str) -> Result<wgpu::Ad
                 "GEAR_ADAPTER={wanted:?} matches none of the adapters found: {names:?}"
             ))
         })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn disabled_features_parse_names_and_reject_typos() {
+        assert_eq!(disabled_features("").unwrap(), wgpu::Features::empty());
+        assert_eq!(
+            disabled_features(" subgroups , Float32_Atomics,").unwrap(),
+            wgpu::Features::SUBGROUP | wgpu::Features::SHADER_FLOAT32_ATOMIC
+        );
+        let err = disabled_features("subgroup").unwrap_err().to_string();
+        assert!(
+            err.contains("\"subgroup\"") && err.contains("subgroups"),
+            "{err}"
+        );
+    }
 }
