@@ -72,6 +72,23 @@ def test_writers_on_fabricated_records(tmp_path):
     assert image[..., :3].std() > 10  # something was drawn
 
 
+def test_ablation_records_get_a_bar_chart(tmp_path):
+    """Ablation rows share one budget: the plot puts the variants along x (bars per scene), so
+    it differs from the time plot of the same rows relabelled as budgets."""
+    runs = []
+    for scene, scale in (("fridge", 1.0), ("drawer_cabinet", 2.0)):
+        for i, variant in enumerate(("em", "joint", "em_interval=50")):
+            runs.append(Run(scene, "quick", variant, 300, timings={"stage3": 10.0 + i},
+                            metrics={"axis_ang": scale * (i + 1), "part_iou": 0.8}))
+    bars = write_results(runs, tmp_path / "ablation", "m")["png"]
+    for r in runs:
+        r.budget, r.variant = f"quick:{r.iterations}{r.variant}", "default"
+    lines = write_results(runs, tmp_path / "budgets", "m")["png"]
+    a, b = (np.asarray(Image.open(p).convert("L"), dtype=float) for p in (bars, lines))
+    assert a.std() > 10
+    assert a.shape != b.shape or np.abs(a - b).mean() > 1.0
+
+
 def test_csv_round_trip(tmp_path):
     from gear.bench.accuracy import write_csv
 

@@ -347,9 +347,63 @@ def plot(records: Sequence[Run], path: Path) -> None:
         ax.axis("off")
     if lines:
         handles = [plt.Line2D([], [], color=c, marker="o", label=n) for n, c in colours.items()]
-        axes.flat[0].legend(handles=handles, fontsize=7)
+        _legend_below(fig, handles)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def _legend_below(fig, handles: list) -> None:  # noqa: ANN001 (a matplotlib Figure)
+    """One legend for every panel, under the grid, where it hides no data."""
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0.0),
+               ncol=min(4, len(handles)), fontsize=8, frameon=False)
+
+
+def plot_ablation(records: Sequence[Run], path: Path) -> None:
+    """Ablation runs share a budget, so time is no axis: one panel per metric (and one for the
+    wall time), the variants along x, one bar per scene."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    ok = [r for r in records if r.status == "ok"]
+    variants_seen = list(dict.fromkeys(r.variant for r in ok))
+    scenes = list(dict.fromkeys(r.scene for r in ok))
+    value = {(r.scene, r.variant): r for r in ok}
+    panels = [("__time", "total time (s)", False), *METRICS]
+    cols = 3
+    rows = math.ceil(len(panels) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.0 * cols, 3.0 * rows), squeeze=False)
+    width = 0.8 / max(1, len(scenes))
+    x = np.arange(len(variants_seen))
+    for ax, (key, label, log_y) in zip(axes.flat, panels, strict=False):
+        drawn = False
+        for i, scene in enumerate(scenes):
+            heights = []
+            for variant in variants_seen:
+                run = value.get((scene, variant))
+                v = None if run is None else (
+                    run.total_seconds if key == "__time" else run.metrics.get(key))
+                heights.append(np.nan if v is None else v)
+            if not np.all(np.isnan(heights)):
+                ax.bar(x + (i - (len(scenes) - 1) / 2) * width, heights, width,
+                       color=f"C{i % 10}")
+                drawn = True
+        if log_y and drawn:
+            ax.set_yscale("log")
+        if not drawn:
+            ax.text(0.5, 0.5, "not computed", ha="center", va="center", transform=ax.transAxes)
+        ax.set_title(label)
+        ax.set_xticks(x, variants_seen, rotation=45, ha="right", fontsize=7)
+        ax.grid(True, axis="y", which="both", alpha=0.3)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=f"C{i % 10}", label=s)
+               for i, s in enumerate(scenes)]
+    _legend_below(fig, handles)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -359,5 +413,8 @@ def write_results(records: Sequence[Run], out: Path, machine: str) -> dict[str, 
     paths = {"csv": out / "accuracy.csv", "md": out / "accuracy.md", "png": out / "accuracy.png"}
     write_csv(records, paths["csv"])
     paths["md"].write_text(markdown_table(records, machine))
-    plot(records, paths["png"])
+    if any(r.variant != "default" for r in records):
+        plot_ablation(records, paths["png"])
+    else:
+        plot(records, paths["png"])
     return paths
