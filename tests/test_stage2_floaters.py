@@ -10,7 +10,7 @@ from gear import train as train_mod
 from gear.coarse import coarse_init
 from gear.config import make_config
 from gear.model import Gaussians
-from gear.train import STAGE2_MIN_OPACITY, RunLog, Trainer, opaque_mask
+from gear.train import STAGE2_MIN_OPACITY, RunLog, Trainer, stage2_selection
 from test_coarse import FRAMES, door_scene
 
 FLOATERS = 300  # per state: a haze cluster in front of the cabinet, elsewhere in each state
@@ -94,8 +94,8 @@ def test_an_unbinarised_model_is_passed_whole():
     rng = np.random.default_rng(0)
     pts = rng.random((500, 3))
     faint = model_of(pts, np.full(500, 0.2))
-    assert opaque_mask(faint).all()
+    assert stage2_selection(faint)[0].all()
     mixed = model_of(pts, np.r_[np.full(400, 0.9), np.full(100, 0.1)])
-    keep = opaque_mask(mixed)
+    keep = stage2_selection(mixed)[0]
     assert keep[:400].all() and not keep[400:].any()
     assert STAGE2_MIN_OPACITY == pytest.approx(0.5)

@@ -109,11 +109,12 @@ STAGE2_MIN_OPACITY = 0.5
 STAGE2_MIN_OPAQUE_FRACTION = 0.5
 
 
-def opaque_mask(model: Gaussians) -> np.ndarray:
-    """The Gaussians stage 2 should see: opacity > STAGE2_MIN_OPACITY, or all of them when
-    fewer than STAGE2_MIN_OPAQUE_FRACTION pass."""
-    keep = torch.sigmoid(model["opacity"].detach()).numpy() > STAGE2_MIN_OPACITY
-    return keep if keep.mean() >= STAGE2_MIN_OPAQUE_FRACTION else np.ones_like(keep)
+def stage2_selection(model: Gaussians) -> tuple[np.ndarray, int]:
+    """(the Gaussians stage 2 should see, how many are above STAGE2_MIN_OPACITY): those above
+    it, or all of them when fewer than STAGE2_MIN_OPAQUE_FRACTION pass; the count says which."""
+    opaque = torch.sigmoid(model["opacity"].detach()).numpy() > STAGE2_MIN_OPACITY
+    keep = opaque if opaque.mean() >= STAGE2_MIN_OPAQUE_FRACTION else np.ones_like(opaque)
+    return keep, int(opaque.sum())
 
 
 def spread_logits(points: np.ndarray, keep: np.ndarray, logits: np.ndarray) -> np.ndarray:
@@ -274,7 +275,8 @@ class Trainer:
         c = self.config
         t0 = time.perf_counter()
         centres = {s: self.models[s]["means"].detach().numpy() for s in STATES}
-        keep = {s: opaque_mask(self.models[s]) for s in STATES}
+        selection = {s: stage2_selection(self.models[s]) for s in STATES}
+        keep = {s: selection[s][0] for s in STATES}
         init = coarse_init(
             centres["start"][keep["start"]],
             centres["end"][keep["end"]],
@@ -298,8 +300,7 @@ class Trainer:
             "notes": list(init.notes),
         }
         for state in STATES:
-            opaque = int((torch.sigmoid(self.models[state]["opacity"].detach())
-                          > STAGE2_MIN_OPACITY).sum())
+            opaque = selection[state][1]
             used = int(keep[state].sum())
             reason = "opaque" if used == opaque else "all: under half opaque, not yet binarised"
             self.log.say(f"stage2: {used} of {len(keep[state])} {state} centres ({reason}; "
