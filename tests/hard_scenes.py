@@ -22,7 +22,7 @@ import torch
 
 from gear.config import TrainConfig, make_config
 from gear.data import Scene, load_scene
-from gear.model import points_from_depth
+from gear.splats.init import points_from_depth
 from gear.synth import build, render_scene
 from gear.synth.model import Articulated
 
@@ -121,27 +121,30 @@ class Run:
 
 
 def run_stages(scene_dir: Path, out_dir: Path, config: TrainConfig) -> Run:
-    """Stages 1-3 as `gear train` runs them (same Trainer), keeping the stage-3 object for
-    inspection; the output files (renders, meshes) are not written."""
-    from gear.outputs import object_center, start_to_end_joints
-    from gear.train import Trainer
+    """Stages 1-3 as `gear train` runs them (same stage entry points), keeping the stage-3
+    object for inspection; the output files (renders, meshes) are not written."""
+    from gear.pipeline.common import TrainView
+    from gear.pipeline.runner import Runner
+    from gear.pipeline.stage1 import STATES, reconstruct_states
+    from gear.pipeline.stage2 import initialise_parts
+    from gear.pipeline.stage3 import refine_parts
 
     scene = load_scene(scene_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
-    trainer = Trainer(scene, out_dir, config, quiet=True)
+    runner = Runner(out_dir, config, quiet=True)
     try:
-        trainer.stage1(None)
-        trainer.stage2()
-        refine = trainer.stage3(None)
+        views = {s: [TrainView.from_view(v) for v in scene.train(s)] for s in STATES}
+        models = reconstruct_states({s: scene.train(s) for s in STATES}, views, config,
+                                    runner, None).models
+        coarse = initialise_parts(models, views, config, runner)
+        refine = refine_parts(models, coarse, views, config, runner, None)
     finally:
-        trainer.log.close()
-    canonical = trainer.coarse["canonical"]
-    joints = [] if refine is None else start_to_end_joints(
-        refine.motion, canonical, object_center(refine.gaussians))
-    return Run(scene, out_dir, joints, canonical, trainer.coarse["num_parts"], refine,
-               trainer.coarse, dict(trainer.timings), read_log(out_dir / "log.jsonl"),
-               list(trainer.coarse["notes"]))
+        runner.log.close()
+    joints = [] if refine is None else refine.joints_now()
+    return Run(scene, out_dir, joints, coarse.canonical, coarse.num_parts, refine,
+               vars(coarse), dict(runner.timings), read_log(out_dir / "log.jsonl"),
+               list(coarse.notes))
 
 
 def read_log(path: Path) -> list[dict]:

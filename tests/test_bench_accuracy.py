@@ -162,7 +162,7 @@ def test_run_loop_records_every_run_and_failure(tmp_path, monkeypatch, capsys):
     # Training and evaluation replaced by stand-ins: this checks the loop, the configs it passes
     # and the files it writes, not the method.
     import gear.bench.accuracy as accuracy
-    import gear.commands.eval as eval_cmd
+    import gear.evaluate as eval_cmd
     import gear.train as train_mod
 
     scene = tmp_path / "my_scene"

@@ -5,14 +5,14 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from gear.coarse import (
-    coarse_init,
+from gear.kinematics import PartMotion
+from gear.pipeline.stage2.hypotheses import (
     correlate,
     fit_plane,
     hinge_candidates,
     rotation_about_line,
 )
-from gear.kinematics import PartMotion
+from gear.pipeline.stage2.parts import coarse_init
 
 FRONT = 2  # face id (axis * 2 + side) of the y = min face: cabinets are open at the front
 
@@ -287,7 +287,7 @@ def test_matter_only_the_open_state_shows_is_not_a_part():
         return at
 
     without = coarse_init(start, end)
-    result = coarse_init(start, end, on_target_surface=look)
+    result = coarse_init(start, end, surfaces={"start": look("start")})
     assert without.num_parts > 2  # the shelves pass the voxel tests alone
     assert result.num_parts == 2
     check_hinge(result, axis, pivot, 65.0, extent=1.9)

@@ -7,8 +7,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from gear.em import classify_joints, knn_consistency_loss, region_pseudo_labels, sam_ce_loss
 from gear.kinematics import PartMotion, dq_apply
+from gear.losses import knn_consistency_loss, region_pseudo_labels, sam_ce_loss
+from gear.pipeline.stage3.joint_types import classify_joints
 
 
 def hand_made_view():
@@ -152,11 +153,11 @@ def test_classify_joints_scores_ambiguous_hinges():
         return float((dq_apply(qr[1], qd[1], probe) - target).square().sum())
 
     motion = PartMotion.from_rt([stalled])
-    assert classify_joints(motion, score=score, init_motions=[door]) == []
+    assert classify_joints(motion, score=score, init_motions=[[door]]) == []
     assert motion.joints(np.zeros(3))[0]["angle_deg"] == pytest.approx(175.0, abs=1e-2)
     assert math.isclose(score(motion), 0.0, abs_tol=1e-9)
     with pytest.raises(ValueError, match="init_motions"):
-        classify_joints(motion, score=score, init_motions=[door, door])
+        classify_joints(motion, score=score, init_motions=[[door], [door]])
 
 
 def test_classify_joints_rescores_parts_stage2_was_torn_on():

@@ -12,8 +12,8 @@ from PIL import Image
 
 from gear.camera import Camera
 from gear.cli import main
-from gear.commands.eval import evaluate
 from gear.data import GtJoint, View, write_scene
+from gear.evaluate import evaluate
 from gear.metrics import chamfer
 
 RES = 16

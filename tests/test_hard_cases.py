@@ -1,8 +1,8 @@
-"""Hard cases (issue 7): the articulations the method is known to find hard, each with its
+"""Hard cases: the articulations the method is known to find hard, each with its
 tolerance stated where it is asserted.
 
 Stage-2 cases (a door turned by 2 degrees, a drawer pulled by 1 % of the object, two identical
-states) run gear.coarse on the depth of tiny renders, back-projected: a clean stand-in for the
+states) run stage 2 on the depth of tiny renders, back-projected: a clean stand-in for the
 stage-1 centres, fine enough to see such small motions. The other cases train on tiny scenes
 (32-64 px, 8 views per state) with the GPU rasterizer in float32, on the quick profile's schedule
 compressed about 4x (tests/hard_scenes.py; GEAR_HARD_QUICK=1 runs the uncompressed schedule).
@@ -20,12 +20,12 @@ import pytest
 import torch
 
 from gear import _core
-from gear.coarse import coarse_init
-from gear.em import classify_joints
 from gear.kinematics import PartMotion
 from gear.metrics import match_parts
-from gear.model import Gaussians
-from gear.stages import Refine
+from gear.pipeline.stage2.parts import coarse_init
+from gear.pipeline.stage3 import Refine
+from gear.pipeline.stage3.joint_types import classify_joints
+from gear.splats import Densifier, Gaussians
 from hard_scenes import (
     STAGE1_QUICK,
     Run,
@@ -200,7 +200,7 @@ class Spies:
         self.scored: list[tuple[list[dict], float]] = []
         self.resets: list[dict] = []
         spies = self
-        motion_loss, reset_opacity = Refine.motion_loss, Gaussians.reset_opacity
+        motion_loss, reset_opacity = Refine.motion_loss, Densifier.reset_opacity
 
         def scored_loss(stage: Refine, candidate: PartMotion) -> float:
             value = motion_loss(stage, candidate)
@@ -208,18 +208,19 @@ class Spies:
             spies.scored.append((candidate.joints(center), value))
             return value
 
-        def spied_reset(g: Gaussians, protect: torch.Tensor | None = None) -> int:
+        def spied_reset(strategy: Densifier, g: Gaussians,
+                        protect: torch.Tensor | None = None) -> int:
             if g.num_parts == 1:  # stage 1
-                return reset_opacity(g, protect)
+                return reset_opacity(strategy, g, protect)
             before = torch.sigmoid(g["opacity"].detach()).clone()
-            n = reset_opacity(g, protect)
+            n = reset_opacity(strategy, g, protect)
             spies.resets.append(dict(parts=g.part_ids(), before=before,
                                      after=torch.sigmoid(g["opacity"].detach()).clone(),
                                      protect=None if protect is None else protect.clone()))
             return n
 
         monkeypatch.setattr(Refine, "motion_loss", scored_loss)
-        monkeypatch.setattr(Gaussians, "reset_opacity", spied_reset)
+        monkeypatch.setattr(Densifier, "reset_opacity", spied_reset)
 
 
 def matched(run: Run) -> tuple[list[tuple[dict, object, dict]], object]:

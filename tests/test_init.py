@@ -1,4 +1,4 @@
-"""Stage-1 initialisation without depth (gear.model.points_from_masks): points on the surface of
+"""Stage-1 initialisation without depth (splats.init): points on the surface of
 the masks' visual hull, coloured by the views that see them in front.
 
 The scene is a sphere of radius R ray-traced analytically (no rasterizer involved): red where
@@ -11,7 +11,7 @@ import pytest
 
 from gear.camera import Camera
 from gear.data.scene import View
-from gear.model import points_from_masks
+from gear.splats.init import points_from_masks
 
 R = 0.3
 RED, BLUE = np.array([0.9, 0.1, 0.1]), np.array([0.1, 0.1, 0.9])

@@ -1,7 +1,7 @@
 """Joint-hypothesis scoring at classification (Refine.motion_loss): every reading gets the same
 short motion-only fine-tuning before it is scored, so the reading the model was trained under
 does not win merely because it had a head start. Rendered with the deterministic torch
-reference (gear.model.rasterizer patched), on a tiny scene: a static back wall and a plank
+reference (rendering.rasterizer patched), on a tiny scene: a static back wall and a plank
 pulled straight out of it (a slide)."""
 
 import copy
@@ -12,14 +12,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gear import model
 from gear.camera import Camera
 from gear.config import make_config
 from gear.data import View
 from gear.kinematics import PartMotion, deform, dq_to_rt, quat_angle
-from gear.model import Gaussians
+from gear.pipeline.common import TrainView
+from gear.pipeline.stage3 import Refine
 from gear.splat_reference import rasterize_dense
-from gear.stages import Refine, TrainView
+from gear.splats import Gaussians, rendering
 
 RES = 16
 TUNE_STEPS = 6
@@ -31,7 +31,7 @@ PULL = np.array([0.0, -0.25, 0.0])  # the true slide
 
 @pytest.fixture(autouse=True)
 def torch_renderer(monkeypatch):
-    monkeypatch.setattr(model, "rasterizer", lambda: rasterize_dense)
+    monkeypatch.setattr(rendering, "rasterizer", lambda: rasterize_dense)
 
 
 def wall_and_plank() -> Gaussians:

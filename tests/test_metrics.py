@@ -1,4 +1,4 @@
-"""Metric definitions on hand-computed cases (METHOD.md §5)."""
+"""Metric definitions on hand-computed cases (docs/evaluation.md)."""
 
 from __future__ import annotations
 

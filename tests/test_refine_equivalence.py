@@ -1,6 +1,6 @@
 """Stage 3's cost-saving formulation optimises exactly what the straightforward one does.
 
-The reference below is the plain reading of METHOD.md §4's part supervision: render the
+The reference below is the plain reading of the part supervision (docs/method.md): render the
 canonical Gaussians with their colours and the K part logits as extra channels, and take the
 logit channels of that image. Refine renders the logit channels alone (blending is per
 channel, so the colours only cost time). Both run the same seeded E- and M-steps with the
@@ -10,10 +10,10 @@ deterministic torch renderer; losses and every trained tensor must agree to floa
 import pytest
 import torch
 
-from gear import model
-from gear.em import region_pseudo_labels, sam_ce_loss
+from gear.losses import region_pseudo_labels, sam_ce_loss
+from gear.pipeline.stage3 import Refine
 from gear.splat_reference import rasterize_dense
-from gear.stages import Refine
+from gear.splats import rendering
 from test_train import refine_stage
 
 # float32 rounding of a differently shaped blend, carried through a few Adam steps (the
@@ -25,17 +25,16 @@ RTOL = 1e-5
 class ReferenceRefine(Refine):
     """Refine with the part supervision rendered the straightforward way (colour + logits)."""
 
-    def _segmentation_terms(self, logits: torch.Tensor) -> dict:
+    def segmentation_terms(self, logits: torch.Tensor) -> dict:
         c, g = self.config, self.gaussians
         neighbours = self.neighbours()
         # The consistency term as written: mean over every (Gaussian, neighbour) pair.
         diffs = [(logits - logits[nb]).norm(dim=1) for nb in neighbours.unbind(1)]
         terms = {"knn": c.lambda_knn * torch.stack(diffs, dim=1).mean()}
-        view = self._pick(self.region_views)
+        view = self.pick(self.region_views)
         k = g.num_parts
         features = torch.cat([g.rgb().detach(), logits], dim=1)
-        out = model.render(g["means"], g["quats"], g["log_scales"], g["opacity"], features,
-                           view.camera, torch.zeros(3 + k))
+        out = rendering.render(g, view.camera, torch.zeros(3 + k), features=features)
         logit_image = out.features[..., 3:]
         labels = region_pseudo_labels(
             torch.softmax(logit_image.detach(), dim=-1), view.regions,
@@ -66,7 +65,7 @@ def stage(reference: bool = False) -> Refine:
 def torch_renderer(monkeypatch):
     # The GPU backward sums with atomics (run-to-run float reordering); the torch renderer is
     # deterministic, so any difference left is the formulation's.
-    monkeypatch.setattr(model, "rasterizer", lambda: rasterize_dense)
+    monkeypatch.setattr(rendering, "rasterizer", lambda: rasterize_dense)
 
 
 def test_refine_steps_match_the_straightforward_formulation(torch_renderer):

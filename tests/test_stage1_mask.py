@@ -1,4 +1,4 @@
-"""Stage 1's silhouette loss (stages.MASK_WEIGHT_WITHOUT_DEPTH x mean |α̂ − mask|): computed on
+"""Stage 1's silhouette loss (stage1.MASK_WEIGHT_WITHOUT_DEPTH x mean |α̂ − mask|): computed on
 views without depth only, equal to the rendered alpha's mean distance to the mask, and it
 pulls the rendered alpha towards the masks."""
 
@@ -8,8 +8,9 @@ import dataclasses
 
 import torch
 
-from gear.model import render
-from gear.stages import MASK_WEIGHT_WITHOUT_DEPTH, ReconstructState, TrainView
+from gear.pipeline.common import TrainView
+from gear.pipeline.stage1 import MASK_WEIGHT_WITHOUT_DEPTH, ReconstructState
+from gear.splats import render
 from test_train import start_gaussians, tiny_config, tiny_views
 
 
@@ -26,8 +27,7 @@ def _mask_error(stage: ReconstructState) -> float:
     total = 0.0
     with torch.no_grad():
         for view in stage.views:
-            out = render(g["means"], g["quats"], g["log_scales"], g["opacity"], g.rgb(),
-                         view.camera, torch.zeros(3))
+            out = render(g, view.camera, torch.zeros(3))
             total += float((out.alpha - view.alpha).abs().mean())
     return total / len(stage.views)
 
@@ -59,6 +59,6 @@ def test_silhouette_term_is_the_alpha_error_and_lowers_it(monkeypatch):
     before, after, terms = _trained_mask_error()
     assert "depth" not in terms
     assert abs(terms["mask"] - MASK_WEIGHT_WITHOUT_DEPTH * before) <= 1e-5 + 1e-4 * before
-    monkeypatch.setattr("gear.stages.MASK_WEIGHT_WITHOUT_DEPTH", 0.0)
+    monkeypatch.setattr("gear.pipeline.stage1.MASK_WEIGHT_WITHOUT_DEPTH", 0.0)
     _, without, _ = _trained_mask_error()
     assert after < 0.9 * without, (before, after, without)

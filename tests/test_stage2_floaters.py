@@ -1,4 +1,4 @@
-"""Trainer.stage2 hands stage 2 only the opaque Gaussians' centres: low-opacity floaters would
+"""initialise_parts hands stage 2 only the opaque Gaussians' centres: low-opacity floaters would
 otherwise become parts of their own. The dropped Gaussians take their part logits from the
 nearest opaque one."""
 
@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from gear import train as train_mod
-from gear.coarse import coarse_init
 from gear.config import make_config
-from gear.model import Gaussians
-from gear.train import STAGE2_MIN_OPACITY, RunLog, Trainer, stage2_selection
+from gear.pipeline.runner import Runner
+from gear.pipeline.stage2 import initialise as stage2
+from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY, stage2_selection
+from gear.pipeline.stage2.parts import coarse_init
+from gear.splats import Gaussians
 from test_coarse import FRAMES, door_scene
 
 FLOATERS = 300  # per state: a haze cluster in front of the cabinet, elsewhere in each state
@@ -51,25 +52,21 @@ def sees_everything(model, views):
     return lambda pts, tol: (np.ones(len(pts), bool), np.ones(len(pts), bool))
 
 
-def stage2_trainer(tmp_path, models) -> Trainer:
-    trainer = object.__new__(Trainer)  # stage 2 needs the models, the config and the log only
-    trainer.config, trainer.models, trainer.timings = make_config("quick"), models, {}
-    trainer.views = {"start": [], "end": []}
-    trainer.log = RunLog(tmp_path / "log.jsonl", quiet=True, append=False)
-    return trainer
+def stage2_runner(tmp_path) -> Runner:
+    return Runner(tmp_path, make_config("quick"), quiet=True)
 
 
 def test_floaters_make_no_part(tmp_path, monkeypatch):
     points, opacity = hazy_door_scene()
     # Every centre, floaters included: the haze moved between the states is a second part.
     everything = coarse_init(points["start"], points["end"],
-                             on_target_surface=lambda state: sees_everything(None, None))
+                             surfaces={s: sees_everything(None, None) for s in points})
     assert everything.num_parts == 3, everything.notes
 
-    monkeypatch.setattr(train_mod, "surface_test", sees_everything)
-    trainer = stage2_trainer(tmp_path, {s: model_of(points[s], opacity[s]) for s in points})
-    trainer.stage2()
-    coarse = trainer.coarse
+    monkeypatch.setattr(stage2, "SurfaceTest", sees_everything)
+    runner = stage2_runner(tmp_path)
+    models = {s: model_of(points[s], opacity[s]) for s in points}
+    coarse = vars(stage2.initialise_parts(models, {"start": [], "end": []}, runner.config, runner))
     assert coarse["num_parts"] == 2, coarse["notes"]
     canonical = coarse["canonical"]
     logits = coarse["logits"].numpy()
@@ -85,7 +82,7 @@ def test_floaters_make_no_part(tmp_path, monkeypatch):
     for i in range(len(pts) - FLOATERS, len(pts), 37):
         nearest = int(np.argmin(np.linalg.norm(opaque - pts[i], axis=1)))
         assert np.array_equal(logits[i], logits[nearest])
-    trainer.log.close()
+    runner.log.close()
 
 
 def test_an_unbinarised_model_is_passed_whole():

@@ -11,9 +11,11 @@ from gear import _core
 from gear.camera import Camera
 from gear.config import make_config
 from gear.data import View
-from gear.model import Gaussians
+from gear.pipeline.common import NonFiniteLoss, TrainView
+from gear.pipeline.stage1 import ReconstructState
+from gear.pipeline.stage3.shared import phase_at
 from gear.splat_reference import rasterize_dense
-from gear.stages import NonFiniteLoss, ReconstructState, TrainView, phase_at
+from gear.splats import Gaussians
 
 RES = 16
 
@@ -82,14 +84,15 @@ def test_stage1_reduces_the_photometric_loss():
 
 
 def test_resumed_stage_reproduces_the_uninterrupted_run(monkeypatch):
-    from gear import checkpoint, model
+    from gear import checkpoint
     from gear.splat_reference import rasterize_dense
+    from gear.splats import rendering
 
     # The GPU backward sums with atomics, so two identical runs differ by float reordering,
     # which a few optimizer steps amplify past any fixed tolerance. This test is about the
     # checkpoint bookkeeping (parameters, Adam moments, RNG state), so it renders with the
     # deterministic torch reference, where resuming must reproduce the run exactly.
-    monkeypatch.setattr(model, "rasterizer", lambda: rasterize_dense)
+    monkeypatch.setattr(rendering, "rasterizer", lambda: rasterize_dense)
 
     views = [TrainView.from_view(v) for v in tiny_views()]
     config = tiny_config()
@@ -163,7 +166,7 @@ def test_cli_stops_on_an_invalid_scene_with_its_problems(tmp_path, capsys):
 
 def refine_stage(**config):
     from gear.kinematics import PartMotion
-    from gear.stages import Refine
+    from gear.pipeline.stage3 import Refine
 
     views = tiny_views()
     for v in views:  # one region per view: the object
@@ -215,7 +218,7 @@ def test_joint_classification_makes_a_small_hinge_prismatic():
 
 
 def test_knn_lists_follow_a_prune_and_densify_that_keeps_the_count():
-    from gear.model import nearest_neighbours
+    from gear.geometry import nearest_neighbours
 
     stage = refine_stage()
     g = stage.gaussians
@@ -276,18 +279,20 @@ def test_m_step_averages_the_configured_number_of_target_views(monkeypatch, view
 
     import torch.nn.functional as F
 
-    from gear import stages
     from gear.kinematics import deform
+    from gear.pipeline import common
+    from gear.pipeline.stage3 import shared
+    from gear.splats.rendering import rasterizer
 
     stage = refine_stage(m_step_views=views)
     cameras = []
-    render = stages.render
+    render = shared.render
 
     def counting_render(*args, **kwargs):
-        cameras.append(args[5])
+        cameras.append(args[1])
         return render(*args, **kwargs)
 
-    monkeypatch.setattr(stages, "render", counting_render)
+    monkeypatch.setattr(shared, "render", counting_render)
     rng_state, motion = stage.generator.get_state(), copy.deepcopy(stage.motion)
     terms = stage.step(2)  # an M-step (em_interval 2, E first)
     assert len(cameras) == views
@@ -305,9 +310,9 @@ def test_m_step_averages_the_configured_number_of_target_views(monkeypatch, view
                                                         generator=replay))]
             assert view.camera is camera
             bg = torch.rand(3, generator=replay)
-            out = render(means, quats, g["log_scales"], g["opacity"], g.rgb(), camera, bg,
-                         depth=True)
-            for name, value in stages._image_terms(out, view, bg, stage.config).items():
+            out = rasterizer()(means, quats, g["log_scales"], g["opacity"], g.rgb(), camera,
+                               background=bg, depth=True)
+            for name, value in common.image_terms(out, view, bg, stage.config).items():
                 expected[name] += float(value) / views
     assert terms.keys() == expected.keys()
     for name in terms:

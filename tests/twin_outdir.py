@@ -17,8 +17,8 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from gear.camera import Camera
-from gear.model import Gaussians
 from gear.outputs import write_ply
+from gear.splats import Gaussians
 
 HINGE = {"part": 1, "type": "revolute", "axis": [0.0, 0.0, 1.0], "origin": [0.25, -0.25, 0.1],
          "angle_deg": 70.0, "distance": 0.0}

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import torch
 
-from gear.model import Gaussians
+from gear.splats import Gaussians
 
 LAST = "last.pt"
 

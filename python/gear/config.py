@@ -1,9 +1,10 @@
-"""Training configuration: every hyperparameter of the method (METHOD.md §2-§4) in one dataclass.
+"""Training configuration: every hyperparameter of the method in one dataclass (each field's
+role: docs/method.md, "Config fields").
 
-Table S1 values are the defaults of the `full` profile. `fast` and `quick` rescale the schedule
-(iteration counts and the iterations at which things happen) but keep every loss weight and
-threshold. A JSON file (`--config FILE`) overrides any field; the resolved config is written to
-the output folder as config.json.
+The paper's Table S1 values are the defaults of the `full` profile. `fast` and `quick` rescale
+the schedule (iteration counts and the iterations at which things happen) but keep every loss
+weight and threshold. A JSON file (`--config FILE`) overrides any field; the resolved config
+is written to the output folder as config.json.
 """
 
 from __future__ import annotations
@@ -27,35 +28,27 @@ class TrainConfig:
 
     # --- Table S1: initialisation (stage 2) ---
     voxel_size: float | None = None  # None = adaptive: 0.1 one movable part / 0.01 several
-    dilation_radius: int = 1
+    dilation_radius: int = 1  # voxels the static set grows by before the dynamic cut
 
     # --- Table S1: training loop ---
     stage1_iterations: int = 30_000  # per state
     stage3_iterations: int = 30_000
     em_interval: int = 500  # E-step and M-step length (one field: the paper studies 50..3000)
     knn_neighbors: int = 3
-    # Target views averaged per M-step. The loss around the best joint angle is lopsided (on
-    # the fridge the depth term rises faster past it than before it), so the noise of
-    # single-view steps biases where the motion settles; averaging 4 views lowered the final
-    # angle error on all four seeds of the quick fridge (docs/training.md) for about the cost
-    # of one E-step.
+    # Target views averaged per M-step: single-view noise biases where the motion settles
+    # (docs/method.md, "M-step").
     m_step_views: int = 4
     joint_classify_iteration: int = 10_000  # stage-3 iteration
     revolute_eps_deg: float = 10.0
-    # [beyond] a joint below ε keeps both readings (hinge, slide, stage-2 hinge) and the one
-    # with the lower photometric + depth loss on the target views wins; False = the paper's rule
+    # [beyond] an ambiguous joint keeps its readings (hinge, slide, stage-2 candidates) and the
+    # one the target images prefer wins; False = the paper's ε rule (docs/method.md,
+    # "Joint types")
     resolve_ambiguous_joints: bool = True
-    # Motion-only steps each joint hypothesis gets (a copy; Gaussians held, hard assignment)
-    # before it is scored. The model has trained for thousands of iterations under the current
-    # reading, so scored as they come the alternatives lose by tiny margins (drawer_cabinet: a
-    # 2.6° hinge beat the true slide by 0.001); the same short budget for every reading lets
-    # each settle first, so the comparison is fair. 0 = score the readings as they are.
+    # Motion-only steps each reading gets before it is scored, so none wins by a head start;
+    # 0 = score the readings as they are (docs/method.md, "Joint types").
     classify_tune_steps: int = 30
-    # A hinge reading below ε must beat the other readings by this fraction of its loss to be
-    # kept: the paper's ε rule as a prior. A hinge contains the slide, so tuned it matches the
-    # slide and wins near-ties by noise (quick drawer_cabinet, 64 px: a 0.4-0.7° hinge beat
-    # the true slide by 0.06-0.3 % of the loss on three seeds); a real hinge's lead over its
-    # slide is tens of percent (fridge door: 60 %).
+    # Relative loss margin a hinge reading below ε must win by: the ε rule as a prior, since a
+    # tuned hinge contains its slide (docs/method.md, "Joint types").
     small_hinge_margin: float = 0.01
     em_refine_joint_iterations: int = 10_000  # em-refine: joint optimisation before EM starts
 

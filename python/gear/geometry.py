@@ -42,6 +42,16 @@ def knn(
     return _core.knn(pts, k, qs)
 
 
+def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
+    """Indices [N, k] of each point's k nearest other points, k clipped to N - 1 (a set too
+    small for one neighbour gives [N, 0]): the neighbour lists of the Gaussians."""
+    pts = np.ascontiguousarray(points, dtype=np.float32)
+    k = min(k, len(pts) - 1)
+    if k < 1:
+        return np.zeros((len(pts), 0), dtype=np.int64)
+    return np.asarray(knn(pts, k)[0], dtype=np.int64)
+
+
 class Occupancy:
     """The occupied voxels of one set in a grid of ``shape``: dense or sparse (see module doc).
 

@@ -262,6 +262,20 @@ def deform(
     return dq_apply(bqr, bqd, means), quat_mul(bqr, quats)
 
 
+
+def pose_parts(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    part_ids: torch.Tensor,
+    qr: torch.Tensor,
+    qd: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Moves each Gaussian rigidly with its part (hard assignment: part_ids [N] index the K
+    motions qr, qd [K,4]); returns (means', quats') in the dtype of `means`. Training's
+    M-step, the written outputs and the twin all pose this way."""
+    weights = torch.nn.functional.one_hot(part_ids, qr.shape[0]).to(means.dtype)
+    return deform(means, quats, weights, qr, qd)
+
 # ---------------------------------------------------------------- per-part motion
 
 

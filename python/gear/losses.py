@@ -1,9 +1,21 @@
-"""Image and Gaussian losses of METHOD.md §2/§4 (torch, [H,W,C] images)."""
+"""The losses of training (torch, [H,W,C] images): photometric, depth and opacity terms of
+stages 1 and 3, and the E-step's part supervision (docs/method.md, "Losses").
+
+- region_pseudo_labels: 2D region masks (SAM-style, ids meaningless across images) vote on the
+  part of each region from the rendered part probabilities.
+- sam_ce_loss: cross-entropy of the rendered part logits against those labels.
+- knn_consistency_loss: neighbouring Gaussians should carry the same part logits.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import numpy as np
 import torch
 import torch.nn.functional as F
+
+from gear.kinematics import safe_norm
 
 _SSIM_WINDOW = 11
 _SSIM_SIGMA = 1.5
@@ -44,7 +56,7 @@ def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def photometric(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
-    """(1 - λ) L1 + λ (1 - SSIM): the 0.8 / 0.2 mix of METHOD.md with λ = λ_D-SSIM."""
+    """(1 - λ) L1 + λ (1 - SSIM): the paper's 0.8 / 0.2 mix with λ = λ_D-SSIM."""
     l1 = (render - target).abs().mean()
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim(render, target))
 
@@ -69,3 +81,119 @@ def composite(rgb: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor) 
     """Straight colour [H,W,3] with alpha [H,W] over a background colour [3]."""
     a = alpha[..., None]
     return rgb * a + background * (1.0 - a)
+
+
+IGNORE = -1
+
+
+def _check_image(t: torch.Tensor, name: str, ndim: int) -> None:
+    if t.dim() != ndim:
+        raise ValueError(f"{name}: expected {ndim} dimensions, got shape {list(t.shape)}")
+
+
+def region_pseudo_labels(
+    prob: torch.Tensor | np.ndarray,
+    regions: torch.Tensor | np.ndarray,
+    prismatic: torch.Tensor | Sequence[bool],
+    gamma: float = 4.0,
+    min_conf: float = 0.5,
+    min_gap: float = 0.2,
+    min_area: int = 50,
+) -> torch.Tensor:
+    """Per-pixel part labels [H, W] int64 from rendered part probabilities [H, W, K].
+
+    For each region u (id > 0): votes[u, c] = sum of p(pixel, c) over its pixels, with the votes
+    of prismatic parts multiplied by `gamma` (small, often occluded drawers would otherwise be
+    outvoted by the static body). The region's argmax replaces its pixels' own argmax when the
+    region is trusted: mean over its pixels of the max probability > min_conf, mean top-1 minus
+    top-2 gap > min_gap, and area >= min_area pixels. Pixels of untrusted regions keep their own
+    argmax; pixels outside every region (id 0) are IGNORE (-1).
+    """
+    prob = torch.as_tensor(prob)
+    _check_image(prob, "prob", 3)
+    regions = torch.as_tensor(np.asarray(regions) if not torch.is_tensor(regions) else regions)
+    if regions.shape != prob.shape[:2]:
+        raise ValueError(
+            f"regions: shape {list(regions.shape)} does not match prob {list(prob.shape[:2])}"
+        )
+    num_parts = prob.shape[-1]
+    boost = torch.as_tensor(prismatic, dtype=torch.bool, device=prob.device).reshape(-1)
+    if boost.numel() != num_parts:
+        raise ValueError(f"prismatic: expected {num_parts} flags, got {boost.numel()}")
+    if num_parts < 2:
+        raise ValueError(f"prob: needs at least 2 parts in the last dimension, got {num_parts}")
+
+    p = prob.detach().reshape(-1, num_parts)
+    labels = p.argmax(dim=-1)
+    ids = regions.to(prob.device).reshape(-1).long()
+    inside = ids > 0
+    if not inside.any():
+        return torch.full(prob.shape[:2], IGNORE, dtype=torch.int64, device=prob.device)
+
+    # Compact the region ids of this image to 0..U-1.
+    uniq, slot = torch.unique(ids[inside], return_inverse=True)
+    num_regions = uniq.numel()
+    pin = p[inside]
+    top2 = pin.topk(2, dim=-1).values
+    area = torch.zeros(num_regions, dtype=p.dtype, device=p.device).index_add_(
+        0, slot, torch.ones_like(slot, dtype=p.dtype)
+    )
+    votes = torch.zeros(num_regions, num_parts, dtype=p.dtype, device=p.device)
+    votes.index_add_(0, slot, pin)
+    conf = torch.zeros_like(area).index_add_(0, slot, top2[:, 0]) / area
+    gap = torch.zeros_like(area).index_add_(0, slot, top2[:, 0] - top2[:, 1]) / area
+    weights = torch.where(boost, gamma, 1.0).to(p.dtype)
+    region_label = (votes * weights).argmax(dim=-1)
+    trusted = (conf > min_conf) & (gap > min_gap) & (area >= min_area)
+
+    inside_labels = torch.where(trusted[slot], region_label[slot], labels[inside])
+    labels = torch.full_like(labels, IGNORE)
+    labels[inside] = inside_labels
+    return labels.reshape(prob.shape[:2])
+
+
+def sam_ce_loss(
+    logit_image: torch.Tensor,
+    labels: torch.Tensor,
+    fg_mask: torch.Tensor,
+    static_weight: float = 1.2,
+) -> torch.Tensor:
+    """Class-weighted cross-entropy of rendered part logits [H, W, K] against pseudo-labels,
+    over foreground pixels with a label (the static class weighted by `static_weight`).
+
+    Zero (still connected to the graph) when no pixel qualifies.
+    """
+    _check_image(logit_image, "logit_image", 3)
+    if labels.shape != logit_image.shape[:2] or fg_mask.shape != logit_image.shape[:2]:
+        raise ValueError(
+            f"labels {list(labels.shape)} and fg_mask {list(fg_mask.shape)} must match "
+            f"logit_image {list(logit_image.shape[:2])}"
+        )
+    num_parts = logit_image.shape[-1]
+    keep = fg_mask.to(torch.bool) & (labels >= 0)
+    if not keep.any():
+        return logit_image.sum() * 0.0
+    weight = torch.ones(num_parts, dtype=logit_image.dtype, device=logit_image.device)
+    weight[0] = static_weight
+    return F.cross_entropy(logit_image[keep], labels[keep].long(), weight=weight)
+
+
+def knn_consistency_loss(logits: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
+    """Mean L2 distance between each Gaussian's part logits [N, K] and its neighbours' [N, n].
+
+    Negative neighbour indices (padding when fewer points than neighbours exist) are skipped.
+    The gradient is zero, not NaN, where the logits already agree.
+    """
+    if logits.dim() != 2 or neighbours.dim() != 2 or neighbours.shape[0] != logits.shape[0]:
+        raise ValueError(
+            f"logits [N, K] and neighbours [N, n] expected, got {list(logits.shape)} and "
+            f"{list(neighbours.shape)}"
+        )
+    if neighbours.numel() and int(neighbours.max()) >= logits.shape[0]:
+        raise ValueError(f"neighbours: index {int(neighbours.max())} >= N = {logits.shape[0]}")
+    valid = neighbours >= 0
+    if not valid.any():
+        return logits.sum() * 0.0
+    idx = neighbours.clamp(min=0).long()
+    dist = safe_norm(logits[:, None, :] - logits[idx], dim=-1)
+    return dist[valid].mean()

@@ -1,4 +1,5 @@
-"""Evaluation metrics with the definitions used by the articulated-object literature (METHOD.md §5).
+"""Evaluation metrics with the definitions used by the articulated-object literature
+(docs/evaluation.md).
 
 Joints are compared as start->end motions:
 - Axis Ang: angle between axis directions in degrees, folded to [0, 90] (an axis and its

@@ -1,5 +1,6 @@
-"""Everything a finished run writes to OUT_DIR (issue 6): joints.json, the canonical Gaussians
-(standard 3DGS PLY + `part`), parts.npy, per-view part-id and RGB renders, TSDF meshes."""
+"""Everything a finished run writes to OUT_DIR (docs/training.md, "Outputs"): joints.json, the
+canonical Gaussians (standard 3DGS PLY + `part`), parts.npy, per-view part-id and RGB renders,
+TSDF meshes."""
 
 from __future__ import annotations
 
@@ -14,43 +15,22 @@ import trimesh
 from PIL import Image
 
 from gear.camera import Camera
-from gear.kinematics import PartMotion, deform, dq_conj, extract_joint
-from gear.model import Gaussians, render
+from gear.kinematics import PartMotion, pose_parts
+from gear.splats import Gaussians, render
 
 BACKGROUND_PART = 255
 _SH_C0 = 0.28209479177387814  # degree-0 spherical harmonic: rgb = 0.5 + C0 * f_dc
 
 
-def object_center(g: Gaussians) -> np.ndarray:
-    """Centre of the opaque Gaussians (joint origins are reported nearest to it)."""
-    means = g["means"].detach()
-    solid = torch.sigmoid(g["opacity"].detach()) > 0.5
-    pts = means[solid] if int(solid.sum()) >= 4 else means
-    return pts.mean(dim=0).numpy().astype(np.float64)
-
-
-def start_to_end_joints(motion: PartMotion, canonical: str, center: np.ndarray) -> list[dict]:
-    """joints.json entries: each movable part's motion expressed from start to end."""
-    qr, qd = motion.motion(1.0)
-    joints = []
-    for k in range(1, motion.num_parts):
-        a, b = qr[k].detach(), qd[k].detach()
-        if canonical == "end":  # the learnt motion is end -> start: invert it
-            a, b = dq_conj(a, b)
-        entry = extract_joint(a, b, center, prismatic=bool(motion.prismatic[k]))
-        joints.append({"part": k, **entry})
-    return joints
-
-
-def posed(g: Gaussians, motion: PartMotion | None, state: str, canonical: str):  # noqa: ANN201
+def posed(g: Gaussians, motion: PartMotion | None, state: str,
+          canonical: str) -> tuple[torch.Tensor, torch.Tensor]:
     """(means, quats) of the Gaussians in `state` with hard part assignment."""
     means, quats = g["means"].detach(), g["quats"].detach()
     if motion is None or state == canonical or motion.num_parts == 1:
         return means, quats
     with torch.no_grad():
         qr, qd = motion.motion(1.0)
-        weights = F.one_hot(g.part_ids(), motion.num_parts).float()
-        return deform(means, quats, weights, qr, qd)
+        return pose_parts(means, quats, g.part_ids(), qr, qd)
 
 
 def write_ply(path: Path, g: Gaussians) -> None:
@@ -90,10 +70,8 @@ def _render_parts(g: Gaussians, means: torch.Tensor, quats: torch.Tensor, cam: C
     k = g.num_parts
     onehot = F.one_hot(g.part_ids(), k).float()
     with torch.no_grad():
-        out = render(
-            means, quats, g["log_scales"].detach(), g["opacity"].detach(),
-            torch.cat([g.rgb().detach(), onehot], dim=1), cam, torch.zeros(3 + k),
-        )
+        out = render(g, cam, pose=(means, quats),
+                     features=torch.cat([g.rgb().detach(), onehot], dim=1), detach=True)
     ids = out.features[..., 3:].argmax(dim=-1).numpy().astype(np.uint8)
     ids[out.alpha.numpy() < 0.5] = BACKGROUND_PART
     rgb = out.features[..., :3].clamp(0, 1).numpy()
@@ -136,14 +114,12 @@ def write_meshes(out_dir: Path, g: Gaussians, motion: PartMotion | None, canonic
             if not bool(keep.any()):  # a part that lost all its Gaussians: an empty mesh
                 trimesh.Trimesh().export(folder / f"{name}.ply")
                 continue
+            part = g.subset(keep)
             depths, alphas = [], []
             for view in vs:
                 with torch.no_grad():
-                    out = render(
-                        means[keep], quats[keep], g["log_scales"].detach()[keep],
-                        g["opacity"].detach()[keep], torch.zeros(int(keep.sum()), 1),
-                        view.camera, torch.zeros(1), depth=True,
-                    )
+                    out = render(part, view.camera, pose=(means[keep], quats[keep]),
+                                 features=torch.zeros(len(part), 1), depth=True)
                 alpha = out.alpha.numpy()
                 depth = out.depth.numpy() / np.maximum(alpha, 1e-6)
                 depths.append(np.where(alpha > 1e-6, depth, 0.0))

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from gear.camera import Camera
+from gear.kinematics import quat_to_matrix as _rotation
 from gear.splat import RenderOutput
 
 NEAR = 0.01
@@ -46,23 +47,6 @@ class Projected:
     def select(self, index: Tensor) -> Projected:
         """The rows picked by `index` (a permutation or a boolean mask)."""
         return Projected(*(getattr(self, f.name)[index] for f in fields(self)))
-
-
-def _rotation(q: Tensor) -> Tensor:
-    """R of unit quaternions (w, x, y, z) [N,4] -> [N,3,3]."""
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z),
-        2 * (x * y - w * z),
-        2 * (x * z + w * y),
-        2 * (x * y + w * z),
-        1 - 2 * (x * x + z * z),
-        2 * (y * z - w * x),
-        2 * (x * z - w * y),
-        2 * (y * z + w * x),
-        1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(rows, -1).reshape(-1, 3, 3)
 
 
 def _camera_tensors(camera: Camera, like: Tensor) -> tuple[Tensor, Tensor]:

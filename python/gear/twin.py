@@ -1,11 +1,12 @@
 """The trained articulated twin: canonical Gaussians + part ids + joints, posed at any state.
 
-A finished run's OUT_DIR (issue 6) holds `gaussians_canonical.ply` (standard 3D Gaussian
-Splatting layout plus an int `part` property), `parts.npy` (part id per Gaussian) and
-`joints.json` (start -> end motion of each movable part). `Twin.load(out_dir)` reads them and
-`Twin.pose(s)` moves every Gaussian rigidly with its part to state s: 0 is the start state, 1
-the end state, and in between a revolute part has turned by s * angle about its axis, a
-prismatic part slid s * distance along its axis (the joint's screw motion, as in training).
+A finished run's OUT_DIR (docs/training.md, "Outputs") holds `gaussians_canonical.ply`
+(standard 3D Gaussian Splatting layout plus an int `part` property), `parts.npy` (part id per
+Gaussian) and `joints.json` (start -> end motion of each movable part). `Twin.load(out_dir)`
+reads them and `Twin.pose(s)` moves every Gaussian rigidly with its part to state s: 0 is the
+start state, 1 the end state, and in between a revolute part has turned by s * angle about its
+axis, a prismatic part slid s * distance along its axis (the joint's screw motion, as in
+training).
 """
 
 from __future__ import annotations
@@ -17,13 +18,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from gear.camera import Camera
 from gear.kinematics import (
-    deform,
     dq_from_rt,
     dq_to_rt,
+    pose_parts,
     quat_from_axis_angle,
     quat_identity,
     quat_to_matrix,
@@ -267,22 +267,23 @@ class Twin:
     def pose(self, s: float) -> tuple[torch.Tensor, torch.Tensor]:
         """(means [N,3], quats [N,4]) float32 of the Gaussians at state s in [0, 1]."""
         qr, qd = self.part_motions(s)
-        onehot = F.one_hot(self.parts, self.num_parts).to(torch.float64)
-        means, quats = deform(self.means.double(), self.quats.double(), onehot, qr, qd)
+        means, quats = pose_parts(self.means.double(), self.quats.double(), self.parts, qr, qd)
         return means.float(), quats.float()
+
+    def splat_arrays(self) -> tuple[torch.Tensor, ...]:
+        """(means, quats, log_scales, opacity logits, rgb) in the canonical state."""
+        return self.means, self.quats, self.log_scales, self.opacity, self.rgb
 
     def render(self, s: float, camera: Camera, background: torch.Tensor | None = None,  # noqa: ANN201
                depth: bool = False, colors: torch.Tensor | None = None):
         """RenderOutput (features [H,W,C], alpha, depth if asked) of the twin at s: its RGB, or
         `colors` [N,C] per Gaussian (e.g. a colour per part) over `background` [C]."""
-        from gear.model import render
+        from gear.splats import render
 
-        means, quats = self.pose(s)
-        feats = self.rgb if colors is None else colors.float()
-        bg = torch.zeros(feats.shape[1]) if background is None else background.float()
+        feats = None if colors is None else colors.float()
+        bg = None if background is None else background.float()
         with torch.no_grad():
-            return render(means, quats, self.log_scales, self.opacity, feats, camera, bg,
-                          depth=depth)
+            return render(self, camera, bg, pose=self.pose(s), features=feats, depth=depth)
 
     def bounds(self, states: list[float]) -> tuple[np.ndarray, float]:
         """(centre [3], radius) of a sphere holding the visible Gaussians (opacity >= 0.1) at

@@ -1,7 +1,7 @@
 """Accuracy against training time: train scenes under several budgets and score every run.
 
 Each (scene, budget[, ablation variant]) is trained with `gear.train.train`, scored with
-`gear eval` (the METHOD.md §5 metrics) and recorded with the wall time of every stage. Results go
+`gear.evaluate` (docs/evaluation.md) and recorded with the wall time of every stage. Results go
 to OUT/accuracy.csv, OUT/accuracy.md (a markdown table with the machine it ran on) and
 OUT/accuracy.png (each metric against total training time, one line per scene).
 
@@ -167,7 +167,7 @@ def _scene_dir(name: str, effects: tuple[str, ...], work: Path, args: argparse.N
 def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: dict[str, Any],
             out_dir: Path, seed: int) -> Run:
     """Train and score one configuration; failures are recorded, not raised."""
-    from gear.commands.eval import evaluate
+    from gear.evaluate import evaluate
     from gear.train import train
 
     config, iterations = budget_config(budget, seed)

@@ -12,7 +12,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "synth",
         help="generate a two-state scene of an articulated object (built-in or URDF)",
         description="Render an articulated object in two states into a scene directory "
-        "(METHOD.md §1 layout) with depth, region masks, GT part ids, trans.json and GT meshes.",
+        "(docs/scenes.md layout) with depth, region masks, GT part ids, trans.json and GT meshes.",
     )
     p.add_argument("object", nargs="?", help="built-in object name (see --list)")
     p.add_argument("--list", action="store_true", help="list the built-in objects and effects")

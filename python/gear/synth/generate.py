@@ -1,4 +1,4 @@
-"""Render an articulated object into a METHOD.md §1 scene with ground truth."""
+"""Render an articulated object into a scene (docs/scenes.md) with ground truth."""
 
 from __future__ import annotations
 

@@ -95,7 +95,7 @@ class Articulated:
         return out
 
     def gt_meshes(self, state: str) -> dict[str, trimesh.Trimesh]:
-        """GT meshes of `state`: "whole", "static", "part_i" (METHOD.md §1 names on disk)."""
+        """GT meshes of `state`: "whole", "static", "part_i" (docs/scenes.md names)."""
         groups = self.posed(state)
         meshes = {"static": _merge(groups[0])}
         meshes.update({f"part_{i}": _merge(g) for i, g in enumerate(groups[1:])})

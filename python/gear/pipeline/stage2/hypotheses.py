@@ -1,0 +1,153 @@
+"""Stage 2's motion hypotheses on the voxel grid: least-squares planes of components, the
+hinges about the intersection of two planes (or the half turn folding one onto the other) and
+whole-voxel slides by cross-correlation (docs/method.md, "Stage 2")."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import fftconvolve
+
+# max/min principal extent above which a component is a plane (may turn on a hinge). Not 3: a
+# door reconstructed from few, small views blurs into what lies behind it (docs/method.md,
+# "Stage 2"); the scores still decide between hinge and slide.
+PLANE_ASPECT = 2.0
+PARALLEL_COS = 0.95  # |n_s . n_t| above this: the planes are too parallel to intersect
+MIN_OVERLAP = 0.1  # overlap / min(|S|, |T|) below this: no motion hypothesis is trusted
+
+
+@dataclass
+class Plane:
+    """Least-squares plane of a point set: centroid, principal axes (rows, largest extent
+    first; the last is the unit normal), the extent along each axis and the ratio of the largest
+    to the smallest extent."""
+
+    centroid: np.ndarray
+    axes: np.ndarray
+    aspect: float
+    extents: np.ndarray
+
+    def width_along(self, direction: np.ndarray) -> float:
+        """The point set's extent along `direction` (unit), from its principal extents."""
+        return float(np.abs(self.axes @ direction) @ self.extents)
+
+    @property
+    def normal(self) -> np.ndarray:
+        return self.axes[-1]
+
+    @property
+    def is_plane(self) -> bool:
+        return self.aspect > PLANE_ASPECT
+
+
+@dataclass
+class Hypothesis:
+    """A candidate canonical -> target motion for one component, scored on the voxel grid.
+
+    landed: fraction of the component's cells that land on occupied target cells, within one
+    voxel (the part must end up where the target has matter). explained: target dynamic cells
+    it covers over min(|S|, |dynamic target|), the paper's overlap (it must explain change).
+    """
+
+    kind: str  # "hinge", "slide" or "identity"
+    rot: np.ndarray
+    trans: np.ndarray
+    landed: float = 0.0
+    explained: float = 0.0
+    fold: bool = False  # a half turn between parallel planes (see init_motion)
+
+    @property
+    def trusted(self) -> bool:
+        return self.kind != "identity" and self.explained >= MIN_OVERLAP
+
+
+IDENTITY = Hypothesis("identity", np.eye(3), np.zeros(3))
+
+
+def fit_plane(points: np.ndarray) -> Plane:
+    """PCA plane of points [N, 3]; extents are 2-98 percentile ranges (robust to strays)."""
+    pts = np.asarray(points, dtype=np.float64)
+    centroid = pts.mean(axis=0)
+    _, _, axes = np.linalg.svd(pts - centroid, full_matrices=False)
+    proj = (pts - centroid) @ axes.T
+    lo, hi = np.percentile(proj, [2, 98], axis=0)
+    extent = hi - lo
+    aspect = float(extent.max() / max(extent.min(), 1e-9 * max(extent.max(), 1e-300)))
+    return Plane(centroid, axes / np.linalg.norm(axes, axis=1, keepdims=True), aspect, extent)
+
+
+def rotation_about_line(
+    axis: np.ndarray, pivot: np.ndarray, angle: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of a right-handed rotation by `angle` radians about the line (pivot, axis)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    rot = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
+    p = np.asarray(pivot, dtype=np.float64)
+    return rot, p - rot @ p
+
+
+def hinge_candidates(
+    src: Plane, dst: Plane, fold_offsets: Sequence[float] = (0.0,)
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Rotations about the intersection line of two planes taking `src` onto `dst`.
+
+    Axis n_s x n_t, pivot the least-squares point on both planes (midway between the centroids
+    along the axis), angle arccos(n_s . n_t), and that angle + pi (the normals' signs are
+    arbitrary). Nearly parallel planes have no usable intersection; if `dst` lies beside `src`
+    (their centroids apart mostly within the plane) they give the half turns that fold one onto
+    the other: a door opened by 180 degrees, which the plane intersection cannot see. The fold
+    axis lies in the (mean) plane across the centroids' offset, through their midpoint moved
+    by each of `fold_offsets` along the offset and along the normal (the two pieces are rarely
+    cut symmetrically about the hinge, nor is the hinge in their plane).
+    """
+    cos = float(np.dot(src.normal, dst.normal))
+    if abs(cos) > PARALLEL_COS:
+        offset = dst.centroid - src.centroid
+        beside = offset - np.dot(offset, src.normal) * src.normal
+        length = float(np.linalg.norm(beside))
+        if length <= 0.5 * np.linalg.norm(offset):
+            return []
+        # Folded about an axis at or near its edge, a piece lands beside its old place, its
+        # centroid moved by about its width. Two slivers of a door turned by a few degrees lie
+        # much closer: that is no fold.
+        if length < 0.5 * max(src.width_along(beside / length), dst.width_along(beside / length)):
+            return []
+        across = beside / length
+        # A half turn reflects a piece's centroid through the axis, so the axis lies in the
+        # plane and across the centroids' offset. (The slab's principal axes would do for a
+        # long door, but a square one has none in its plane.)
+        normal = src.normal + np.sign(cos) * dst.normal
+        axis = np.cross(normal / np.linalg.norm(normal), across)
+        mid = (src.centroid + dst.centroid) / 2
+        return [
+            rotation_about_line(axis, mid + a * across + b * src.normal, np.pi)
+            for a in fold_offsets
+            for b in fold_offsets
+        ]
+    axis = np.cross(src.normal, dst.normal)
+    axis /= np.linalg.norm(axis)
+    system = np.stack([src.normal, dst.normal, axis])
+    rhs = np.array(
+        [
+            src.normal @ src.centroid,
+            dst.normal @ dst.centroid,
+            axis @ (src.centroid + dst.centroid) / 2,
+        ]
+    )
+    pivot = np.linalg.lstsq(system, rhs, rcond=None)[0]
+    angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return [rotation_about_line(axis, pivot, a) for a in (angle, angle + np.pi)]
+
+
+def correlate(grid: np.ndarray, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For every whole-voxel shift d: how many cells of mask `src` land on `grid` when moved by
+    d (FFT cross-correlation). Returns the counts and the shift [3] of counts[0, 0, 0]."""
+    cells = np.argwhere(src)
+    lo, hi = cells.min(0), cells.max(0) + 1
+    crop = src[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
+    counts = np.rint(fftconvolve(grid.astype(np.float32), crop[::-1, ::-1, ::-1], mode="full"))
+    return counts, -(np.array(crop.shape) - 1) - lo

@@ -1,0 +1,120 @@
+"""Stage 2's entry point: from the two stage-1 models to parts, motions and part logits
+(docs/method.md, "Stage 2"). `initialise_parts` -> `Stage2Result`."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from gear.config import TrainConfig
+from gear.pipeline.common import TrainView
+from gear.pipeline.runner import Runner
+from gear.pipeline.stage2.parts import coarse_init
+from gear.pipeline.stage2.surface import SurfaceTest
+from gear.splats import Gaussians
+
+STATES = ("start", "end")
+# Stage 2 sees only the centres of Gaussians at least this opaque, unless fewer than
+# STAGE2_MIN_OPAQUE_FRACTION of a state's Gaussians pass (docs/method.md, "Stage 2").
+STAGE2_MIN_OPACITY = 0.5
+STAGE2_MIN_OPAQUE_FRACTION = 0.5
+
+Motion = tuple[np.ndarray, np.ndarray]  # (R [3,3], t [3]): canonical -> target
+
+
+@dataclass
+class Stage2Result:
+    """Canonical state, part count K, part logits of every canonical Gaussian [N, K] and, per
+    movable part, its motion candidates (the initial motion first, then near-ties of the other
+    joint kind, for stage 3's joint-type decision); the voxel size used and notes."""
+
+    canonical: str
+    num_parts: int
+    logits: torch.Tensor
+    candidates: list[list[Motion]]
+    voxel_size: float
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def target(self) -> str:
+        return "end" if self.canonical == "start" else "start"
+
+    @property
+    def motions(self) -> list[Motion]:
+        """The initial motion of each movable part."""
+        return [part[0] for part in self.candidates]
+
+    def to_checkpoint(self) -> dict:
+        return dict(vars(self))
+
+    @classmethod
+    def from_checkpoint(cls, state: dict) -> Stage2Result:
+        return cls(**state)
+
+
+def stage2_selection(model: Gaussians) -> tuple[np.ndarray, int]:
+    """(the Gaussians stage 2 should see, how many are above STAGE2_MIN_OPACITY): those above
+    it, or all of them when fewer than STAGE2_MIN_OPAQUE_FRACTION pass; the count says which."""
+    opaque = torch.sigmoid(model["opacity"].detach()).numpy() > STAGE2_MIN_OPACITY
+    keep = opaque if opaque.mean() >= STAGE2_MIN_OPAQUE_FRACTION else np.ones_like(opaque)
+    return keep, int(opaque.sum())
+
+
+def spread_logits(points: np.ndarray, keep: np.ndarray, logits: np.ndarray) -> np.ndarray:
+    """Part logits for every point [N, K] from those of the kept points `logits` [keep.sum(),
+    K]: a dropped point takes the logits of its nearest kept point."""
+    out = np.empty((len(points), logits.shape[1]), dtype=logits.dtype)
+    out[keep] = logits
+    if (~keep).any():
+        _, nearest = cKDTree(points[keep]).query(points[~keep], k=1)
+        out[~keep] = logits[nearest]
+    return out
+
+
+def initialise_parts(models: dict[str, Gaussians], views: dict[str, list[TrainView]],
+                     config: TrainConfig, runner: Runner) -> Stage2Result:
+    """Parts, motions and logits from the opaque centres of both states' models, each part
+    confirmed by the target state's images (`views`)."""
+    c = config
+    t0 = time.perf_counter()
+    centres = {s: models[s]["means"].detach().numpy() for s in STATES}
+    selection = {s: stage2_selection(models[s]) for s in STATES}
+    keep = {s: selection[s][0] for s in STATES}
+    init = coarse_init(
+        centres["start"][keep["start"]],
+        centres["end"][keep["end"]],
+        c.num_parts,
+        c.voxel_size,
+        surfaces={s: SurfaceTest(models[s], views[s]) for s in STATES},
+        dilation_radius=c.dilation_radius,
+    )
+    canonical = init.canonical
+    logits = spread_logits(centres[canonical], keep[canonical],
+                           np.asarray(init.logits, dtype=np.float32))
+    result = Stage2Result(
+        canonical=canonical,
+        num_parts=int(init.num_parts),
+        logits=torch.as_tensor(logits),
+        candidates=[[(np.asarray(r), np.asarray(t)) for r, t in part]
+                    for part in init.candidates],
+        voxel_size=init.voxel_size,
+        notes=list(init.notes),
+    )
+    runner.timings["stage2"] = time.perf_counter() - t0
+    for state in STATES:
+        opaque = selection[state][1]
+        used = int(keep[state].sum())
+        reason = "opaque" if used == opaque else "all: under half opaque, not yet binarised"
+        runner.log.say(f"stage2: {used} of {len(keep[state])} {state} centres ({reason}; "
+                       f"{opaque} above opacity {STAGE2_MIN_OPACITY})")
+    for note in init.notes:
+        runner.log.say(f"stage2: {note}")
+    runner.log.say(f"stage2: canonical state '{canonical}', {init.num_parts} part(s)")
+    runner.log.write({"event": "stage_done", "stage": "stage2",
+                      "seconds": runner.timings["stage2"]})
+    runner.finished("coarse", result.to_checkpoint())
+    return result

@@ -1,0 +1,188 @@
+"""Stage 2's voxel grid: the object's scale and voxel size, the static/dynamic split of the two
+states' centres with the components of each, and the initial motion of a component scored on
+that grid (docs/method.md, "Stage 2")."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gear import geometry
+from gear.pipeline.stage2.hypotheses import (
+    IDENTITY,
+    MIN_OVERLAP,
+    PARALLEL_COS,
+    Hypothesis,
+    Plane,
+    correlate,
+    fit_plane,
+    hinge_candidates,
+)
+
+# A hinge and a slide landing within this fraction of each other are both kept as candidates
+# (stage 3 picks by the images); among slides this close, the shortest wins.
+TIE_MARGIN = 0.1
+SLIDE_TOLERANCE = 0.05
+# Voxel size from the data: the object's extent divided by these cell counts (a coarse grid for
+# one movable part, a fine one to separate neighbouring parts), but never finer than
+# SPACING_FACTOR times the median spacing of the centres, or static surfaces would not be seen
+# as occupied in both states.
+CELLS_SINGLE = 16
+CELLS_MULTI = 100
+SPACING_FACTOR = 2.0
+MIN_PART_VOXELS = 8  # a component smaller than this is no part
+MAX_TARGET_CANDIDATES = 16
+MAX_DENSE_CELLS = 1 << 26
+SPACING_SAMPLES = 20000
+
+
+@dataclass
+class Scale:
+    """The object's size (largest side of its 0.5-99.5 percentile box) and the median distance
+    between neighbouring centres; voxel sizes derive from both (see the module constants)."""
+
+    extent: float
+    spacing: float
+
+    @classmethod
+    def of(cls, points: np.ndarray, seed: int = 0) -> Scale:
+        lo, hi = np.percentile(points, [0.5, 99.5], axis=0)
+        rng = np.random.default_rng(seed)
+        count = min(len(points), SPACING_SAMPLES)
+        sample = points[rng.choice(len(points), count, replace=False)]
+        # k = 2 against the full set: the first neighbour of a sampled point is itself.
+        _, dist = geometry.knn(points.astype(np.float32), 2, queries=sample.astype(np.float32))
+        scale = cls(float((hi - lo).max()), float(np.median(dist[:, 1])))
+        if not scale.extent > 0:
+            raise ValueError("means: the centres have no extent (all points coincide)")
+        return scale
+
+    def voxel_size(self, single_part: bool) -> float:
+        cells = CELLS_SINGLE if single_part else CELLS_MULTI
+        return max(self.extent / cells, SPACING_FACTOR * self.spacing)
+
+
+@dataclass
+class VoxelSplit:
+    """Static/dynamic split in the shared grid and the components of each state."""
+
+    grid: geometry.VoxelGrid
+    exact_target: np.ndarray  # target occupancy
+    occ_target: np.ndarray  # target occupancy, dilated by one voxel
+    dyn_target: np.ndarray  # target dynamic cells, dilated by one voxel
+    labels: tuple[np.ndarray, np.ndarray]  # component labels (canonical, target), 0 = none
+    sizes: tuple[np.ndarray, np.ndarray]  # voxel counts per label, largest first
+
+    def score(
+        self, src_cells: np.ndarray, kind: str, rot: np.ndarray, trans: np.ndarray
+    ) -> Hypothesis:
+        """The Hypothesis of moving `src_cells` by p -> R p + t (see Hypothesis)."""
+        moved = self.grid.centres(src_cells) @ np.asarray(rot).T + np.asarray(trans)
+        cells = self.grid.voxel_of(moved)
+        cells = cells[np.all((cells >= 0) & (cells < np.array(self.grid.shape)), axis=1)]
+        landed = self.occ_target[cells[:, 0], cells[:, 1], cells[:, 2]]
+        hit = cells[self.dyn_target[cells[:, 0], cells[:, 1], cells[:, 2]]]
+        explained = len(np.unique(hit, axis=0)) / max(
+            1, min(len(src_cells), int(self.dyn_target.sum()))
+        )
+        return Hypothesis(kind, rot, trans, float(landed.sum()) / len(src_cells), explained)
+
+    def best_slide(self, src_mask: np.ndarray) -> np.ndarray | None:
+        """The whole-voxel translation landing most of `src_mask` on target matter among those
+        explaining enough target dynamic cells (None if no shift does)."""
+        landed, offset = correlate(self.occ_target, src_mask)
+        exact, _ = correlate(self.exact_target, src_mask)
+        explained, _ = correlate(self.dyn_target, src_mask)
+        need = MIN_OVERLAP * min(int(src_mask.sum()), int(self.dyn_target.sum()))
+        # Exact landings break ties within the one-voxel tolerance.
+        rank = np.where(explained >= max(need, 1), landed + exact, -1.0)
+        top = rank.max()
+        if top < 0:
+            return None
+        # Of the shifts nearly as good as the best, the shortest: a drawer among identical
+        # drawers also "fits" where its neighbour is.
+        near = np.argwhere(rank >= (1 - SLIDE_TOLERANCE) * top) + offset
+        shortest = near[np.argmin(np.linalg.norm(near, axis=1))]
+        return shortest * self.grid.voxel_size
+
+
+def split_static_dynamic(
+    canon: np.ndarray, target: np.ndarray, voxel_size: float, dilation_radius: int = 1
+) -> VoxelSplit:
+    """Voxels occupied in both states, dilated by `dilation_radius`, are static; the rest of
+    each state's occupancy is dynamic, in 26-connected components."""
+    lo = np.minimum(canon.min(0), target.min(0))
+    hi = np.maximum(canon.max(0), target.max(0))
+    cells = np.prod(np.floor((hi - lo) / voxel_size) + 1)
+    if cells > MAX_DENSE_CELLS:
+        raise ValueError(
+            f"voxel_size {voxel_size:.4g} is too small for this object ({cells:.3g} cells, "
+            f"limit {MAX_DENSE_CELLS}); use a larger voxel size"
+        )
+    grid = geometry.voxel_grid([canon, target], voxel_size, max_dense_cells=MAX_DENSE_CELLS)
+    occ_c, occ_t = (o.to_dense(MAX_DENSE_CELLS) for o in grid.occupancy)
+    static = geometry.dilate(occ_c & occ_t, dilation_radius)
+    labels, sizes = [], []
+    for occ in (occ_c, occ_t):
+        lab, size = geometry.components(occ & ~static, connectivity=26)
+        labels.append(lab)
+        sizes.append(np.asarray(size, dtype=np.int64))
+    # Scores tolerate one voxel: a thin moved surface lands on the neighbour cell of its match.
+    near_occ = geometry.dilate(occ_t, 1)
+    near_dyn = geometry.dilate(occ_t & ~static, 1)
+    return VoxelSplit(grid, occ_t, near_occ, near_dyn, (labels[0], labels[1]), (sizes[0], sizes[1]))
+
+
+def init_motion(
+    split: VoxelSplit, comp: int, canon_plane: Plane, target: np.ndarray, target_labels: np.ndarray
+) -> list[Hypothesis]:
+    """Initial motion of canonical component `comp`, and the runner-up of the other kind.
+
+    Candidates: the plane-intersection hinges with every planar target component above a size
+    floor (when the component itself is planar), and the best whole-voxel slide. Among those
+    explaining enough target change, the one landing most cells on target matter wins (a hinge
+    on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
+    follows when it lands within TIE_MARGIN of the winner (a hinge that close goes first), or
+    whatever it lands when it is a fold: a slab turned by half a turn shows the other state its
+    formerly hidden face, so half of it lands where that state saw nothing (the back of a closed
+    door), while a slide of the symmetric slab lands both faces; the voxels cannot tell the two
+    apart, the images can.
+    """
+    src_mask = split.labels[0] == comp
+    src_cells = np.argwhere(src_mask)
+    candidates: list[Hypothesis] = []
+    fold_offsets = split.grid.voxel_size * np.arange(-2.0, 2.5, 0.5)
+    if canon_plane.is_plane:
+        floor = max(MIN_PART_VOXELS, 0.2 * len(src_cells))
+        for j, size in enumerate(split.sizes[1][:MAX_TARGET_CANDIDATES], start=1):
+            if size < floor:
+                break
+            plane = fit_plane(target[target_labels == j])
+            if plane.is_plane:
+                fold = abs(float(np.dot(canon_plane.normal, plane.normal))) > PARALLEL_COS
+                for rot, trans in hinge_candidates(canon_plane, plane, fold_offsets):
+                    hyp = split.score(src_cells, "hinge", rot, trans)
+                    hyp.fold = fold
+                    candidates.append(hyp)
+    shift = split.best_slide(src_mask)
+    if shift is not None:
+        candidates.append(split.score(src_cells, "slide", np.eye(3), shift))
+    trusted = [h for h in candidates if h.trusted]
+    if not trusted:
+        return [IDENTITY]
+    # max() keeps the first of equal scores: hinges come first.
+    best = max(trusted, key=lambda h: h.landed)
+    others = [
+        h for h in trusted
+        if h.kind != best.kind and (h.fold or h.landed >= best.landed - TIE_MARGIN)
+    ]
+    if not others:
+        return [best]
+    runner = max(others, key=lambda h: h.landed)
+    if best.kind == "slide" and runner.landed >= best.landed - TIE_MARGIN:
+        # Near-tie: the hinge goes first. Stage 3 can turn a hinge into a slide (the ε rule),
+        # but a part that starts sliding never grows the rotation of a door: the images then
+        # have to reject a slide the model was already trained for (docs/method.md, "Stage 2").
+        best, runner = runner, best
+    return [best, runner]

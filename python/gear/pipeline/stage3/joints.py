@@ -1,0 +1,30 @@
+"""Reading joints off stage 3's part motions: joints.json entries, start -> end."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from gear.kinematics import PartMotion, dq_conj, extract_joint
+from gear.splats import Gaussians
+
+
+def object_center(g: Gaussians) -> np.ndarray:
+    """Centre of the opaque Gaussians (joint origins are reported nearest to it)."""
+    means = g["means"].detach()
+    solid = torch.sigmoid(g["opacity"].detach()) > 0.5
+    pts = means[solid] if int(solid.sum()) >= 4 else means
+    return pts.mean(dim=0).numpy().astype(np.float64)
+
+
+def start_to_end_joints(motion: PartMotion, canonical: str, center: np.ndarray) -> list[dict]:
+    """joints.json entries: each movable part's motion expressed from start to end."""
+    qr, qd = motion.motion(1.0)
+    joints = []
+    for k in range(1, motion.num_parts):
+        a, b = qr[k].detach(), qd[k].detach()
+        if canonical == "end":  # the learnt motion is end -> start: invert it
+            a, b = dq_conj(a, b)
+        entry = extract_joint(a, b, center, prismatic=bool(motion.prismatic[k]))
+        joints.append({"part": k, **entry})
+    return joints

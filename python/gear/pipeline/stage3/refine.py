@@ -1,0 +1,92 @@
+"""Stage 3's entry point: the canonical model with part logits and per-part motions, refined
+by alternating E- and M-steps, with the joint types decided once on the way
+(docs/method.md, "Stage 3"). `refine_parts` -> the refined `Refine` (its Gaussians, part
+motions and joints; None for a static object)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from gear import checkpoint
+from gear.config import TrainConfig
+from gear.kinematics import PartMotion
+from gear.pipeline.common import TrainView
+from gear.pipeline.runner import Runner
+from gear.pipeline.stage2 import Stage2Result
+from gear.pipeline.stage3.estep import EStep
+from gear.pipeline.stage3.joint_types import JointTypes
+from gear.pipeline.stage3.joints import object_center, start_to_end_joints
+from gear.pipeline.stage3.mstep import MStep
+from gear.splats import Gaussians
+
+
+class Refine(EStep, MStep, JointTypes):
+    """The per-iteration work of stage 3: which step the schedule asks for, the joint-type
+    decision at its iteration, densification outside the M-phases."""
+
+    def step(self, it: int) -> dict[str, float]:
+        phase = self.phase(it)
+        if it == self.config.joint_classify_iteration:
+            self.classify()
+        terms = self.motion_step(it) if phase == "M" else self.gaussian_step(it, phase)
+        self.maintain(it)
+        return terms
+
+    def joints_now(self) -> list[dict]:
+        """joints.json entries of the current motions (start -> end)."""
+        return start_to_end_joints(self.motion, self.canonical, object_center(self.gaussians))
+
+    def status(self) -> str:
+        return " ".join(
+            f"j{j['part']}={j['angle_deg']:.1f}°" if j["type"] == "revolute"
+            else f"j{j['part']}={j['distance']:.3f}" for j in self.joints_now()
+        )
+
+    def snapshot(self) -> dict:
+        return {"joints": self.joints_now()}
+
+    def state_dict(self) -> dict:
+        return {
+            "generator": self.generator.get_state(),
+            "motion": self.motion.state_dict(),
+            "motion_optimizer": self.motion_optimizer.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.generator.set_state(state["generator"])
+        self.motion.load_state_dict(state["motion"])
+        self.motion_optimizer.load_state_dict(state["motion_optimizer"])
+
+    def checkpoint(self) -> dict:
+        return {"current": checkpoint.gaussians_state(self.gaussians),
+                "frozen": checkpoint.gaussians_state(self.frozen),
+                "stage_state": self.state_dict()}
+
+
+def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
+                 views: dict[str, Sequence[TrainView]], config: TrainConfig, runner: Runner,
+                 resume: dict | None) -> Refine | None:
+    """Stage 3 from stage 2's parts and the canonical stage-1 model, or continued from
+    `resume`; None when stage 2 found a single (static) part."""
+    c = config
+    if coarse.num_parts == 1:
+        runner.log.say("no motion detected between the two states: one static part")
+        return None
+    if resume is not None and resume["stage"] in ("stage3", "stage3-done"):
+        g = checkpoint.gaussians_from_state(resume["current"])
+        frozen = checkpoint.gaussians_from_state(resume["frozen"])
+        start = resume["iteration"]
+    else:
+        base = models[coarse.canonical]
+        g = base.clone()
+        g.add_param("logits", coarse.logits, c.lr_logits)
+        frozen = base.clone()
+        start = 0
+    stage = Refine(g, PartMotion.from_rt(coarse.motions), frozen, views[coarse.canonical],
+                   views[coarse.target], c, c.seed * 1000 + 7,
+                   init_motions=coarse.candidates, canonical=coarse.canonical)
+    if start:
+        stage.load_state_dict(resume["stage_state"])
+    runner.run(stage, start, c.stage3_iterations)
+    runner.save("stage3-done", c.stage3_iterations, stage)
+    return stage

@@ -1,0 +1,137 @@
+"""What stage 3's E-step, M-step and joint-type decision share: the refinement's state (the
+canonical Gaussians with part logits, the part motions, the frozen stage-1 model, the views),
+the phase schedule, the motion optimiser, the anchor renders and the image terms of the model
+posed under hard assignment (docs/method.md, "Stage 3")."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+from gear.config import TrainConfig
+from gear.geometry import nearest_neighbours
+from gear.kinematics import PartMotion, pose_parts
+from gear.pipeline.common import Stage, TrainView, gaussian_lrs, image_terms
+from gear.splats import Densifier, Gaussians, render
+from gear.splats.init import scene_extent
+
+
+def phase_at(schedule: str, it: int, interval: int, refine_joint: int) -> str:
+    """'E', 'M' (alternation, E first) or 'J' (joint optimisation) at stage-3 iteration `it`."""
+    if schedule == "joint":
+        return "J"
+    if schedule == "em-refine":
+        if it < refine_joint:
+            return "J"
+        it -= refine_joint
+    return "E" if (it // interval) % 2 == 0 else "M"
+
+
+def motion_optimizer(motion: PartMotion, config: TrainConfig, extent: float) -> torch.optim.Adam:
+    """Adam over the rotation and translation halves of `motion`."""
+    return torch.optim.Adam(
+        [
+            {"params": [motion.qr], "lr": config.lr_motion_rot},
+            {"params": [motion.qd], "lr": config.lr_motion_trans * extent},
+        ],
+        eps=1e-15,
+    )
+
+
+class RefineState(Stage):
+    """Stage 3's state: canonical Gaussians + part logits + per-part motion, the frozen
+    stage-1 model of the canonical state, and the views of both states."""
+
+    name = "stage3"
+
+    def __init__(
+        self,
+        gaussians: Gaussians,
+        motion: PartMotion,
+        frozen: Gaussians,
+        canonical_views: Sequence[TrainView],
+        target_views: Sequence[TrainView],
+        config: TrainConfig,
+        seed: int,
+        init_motions: Sequence = (),  # stage-2 candidates per movable part (joint_types)
+        canonical: str = "start",
+    ) -> None:
+        super().__init__(config, seed)
+        self.gaussians, self.motion, self.frozen = gaussians, motion, frozen
+        self.init_motions = list(init_motions)
+        self.canonical = canonical
+        self.canonical_views = list(canonical_views)
+        self.region_views = [v for v in self.canonical_views if v.regions is not None]
+        self.target_views = list(target_views)
+        self.extent = scene_extent([v.camera for v in self.canonical_views + self.target_views])
+        if gaussians.optimizer is None:
+            gaussians.setup_optimizer(gaussian_lrs(config, self.extent))
+        self.densifier = Densifier(gaussians)
+        self.motion_optimizer = motion_optimizer(motion, config, self.extent)
+        self.total = config.stage3_iterations
+        self._neighbours: torch.Tensor | None = None
+        self._neighbours_generation = -1  # Gaussians.generation the lists were built for
+        self._anchor_cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+
+    def phase(self, it: int) -> str:
+        c = self.config
+        return phase_at(c.schedule, it, c.em_interval, c.em_refine_joint_iterations)
+
+    def neighbours(self) -> torch.Tensor:
+        """KNN of the canonical centres, rebuilt lazily whenever the set of Gaussians changed
+        (densify/prune, even when the count stays the same). Between two such edits the lists
+        are reused while the centres move a little."""
+        g = self.gaussians
+        if self._neighbours is None or self._neighbours_generation != g.generation:
+            pts = g["means"].detach().numpy()
+            self._neighbours = torch.as_tensor(nearest_neighbours(pts, self.config.knn_neighbors))
+            self._neighbours_generation = g.generation
+        return self._neighbours
+
+    def anchor(self, view_index: int, view: TrainView) -> tuple[torch.Tensor, ...]:
+        """The frozen stage-1 canonical model seen from a target camera (zero background):
+        (features, alpha, depth where solid), rendered once per view."""
+        if view_index not in self._anchor_cache:
+            with torch.no_grad():
+                out = render(self.frozen, view.camera, torch.zeros(3), depth=True)
+            # Depth supervision only where the frozen model is solid (as 0 = missing in data).
+            depth = torch.where(out.alpha > 0.5, out.depth, 0.0)
+            self._anchor_cache[view_index] = (out.features, out.alpha, depth)
+        return self._anchor_cache[view_index]
+
+    def target_view(self) -> tuple[int, TrainView, torch.Tensor]:
+        """A random target-state training view (with its index) and background colour."""
+        index = self.pick_index(len(self.target_views))
+        return index, self.target_views[index], self.background()
+
+    def scoring_views(self) -> list[TrainView]:
+        """Up to 8 target training views, evenly spaced: the fixed set hypotheses are judged on."""
+        return self.target_views[:: max(1, len(self.target_views) // 8)]
+
+    def held_image_terms(
+        self, motion: PartMotion, views: Sequence[TrainView], backgrounds: Sequence[torch.Tensor],
+    ) -> dict[str, torch.Tensor]:
+        """Image terms (photometric + depth), averaged over `views`, of the canonical model
+        moved by `motion` under hard (argmax) assignment with every Gaussian parameter held:
+        only `motion` receives gradients. The M-step, the hypothesis scoring and its
+        fine-tuning all judge a motion this way."""
+        g = self.gaussians
+        qr, qd = motion.motion(1.0)
+        pose = pose_parts(g["means"].detach(), g["quats"].detach(), g.part_ids(), qr, qd)
+        terms: dict[str, torch.Tensor] = {}
+        for view, bg in zip(views, backgrounds, strict=True):
+            out = render(g, view.camera, bg, pose=pose, depth=view.depth is not None,
+                         detach=True)
+            for name, value in image_terms(out, view, bg, self.config).items():
+                terms[name] = terms.get(name, 0.0) + value / len(views)
+        return terms
+
+    def maintain(self, it: int) -> None:
+        """Densify/prune and opacity reset at their iterations, never inside an M-phase (the
+        M-step leaves the densification statistics alone)."""
+        c = self.config
+        self.events += self.densifier.maintain(
+            self.gaussians, it + 1, c, self.extent, c.stage3_densify_until,
+            self.phase(it + 1) != "M", self.generator,
+        )

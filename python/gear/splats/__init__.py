@@ -1,0 +1,8 @@
+"""Gaussian splats: the parameters with their optimiser state, the densification strategy,
+the initialisation and the one render call (docs/architecture.md)."""
+
+from gear.splats.gaussians import Gaussians
+from gear.splats.rendering import render
+from gear.splats.strategy import Densifier
+
+__all__ = ["Densifier", "Gaussians", "render"]

@@ -1,0 +1,63 @@
+"""The one render call of training, outputs and the twin: a set of Gaussians (optionally
+posed, or carrying other per-Gaussian features such as part logits) seen from one camera."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import torch
+
+from gear.camera import Camera
+
+
+class Splats(Protocol):
+    """Anything the renderer can draw: gear.splats.Gaussians, gear.twin.Twin."""
+
+    def splat_arrays(self) -> tuple[torch.Tensor, ...]:
+        """(means [N,3], quats [N,4], log_scales [N,3], opacity logits [N], rgb [N,3])."""
+        ...
+
+
+@functools.cache
+def rasterizer() -> Callable:
+    """The executor every render goes through: the GPU kernels when the extension has them,
+    else the torch reference (same signature and maths; slow, for tiny scenes)."""
+    from gear import _core
+
+    if hasattr(_core, "rasterize_forward"):
+        from gear.splat import rasterize
+
+        return rasterize
+    from gear.splat_reference import rasterize_dense
+
+    return rasterize_dense
+
+
+def render(
+    splats: Splats,
+    camera: Camera,
+    background: torch.Tensor | None = None,
+    *,
+    pose: tuple[torch.Tensor, torch.Tensor] | None = None,
+    features: torch.Tensor | None = None,
+    depth: bool = False,
+    detach: bool = False,
+) -> Any:  # RenderOutput(.features [H,W,C], .alpha [H,W], .depth [H,W] | None)
+    """`splats` seen from `camera` over `background` [C] (black when None).
+
+    pose: (means, quats) to draw instead of the stored ones (a posed or deformed model, see
+    gear.kinematics.pose_parts). features: [N,C] to blend instead of the RGB colours.
+    detach: no gradient reaches the stored parameters (a given pose or features keep their
+    own graph)."""
+    stored = splats.splat_arrays()
+    if detach:
+        stored = tuple(t.detach() for t in stored)
+    means, quats, log_scales, opacity, rgb = stored
+    if pose is not None:
+        means, quats = pose
+    feats = rgb if features is None else features
+    bg = torch.zeros(feats.shape[1]) if background is None else background
+    return rasterizer()(means, quats, log_scales, opacity, feats, camera, background=bg,
+                        depth=depth)
