@@ -5,7 +5,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from gear.kinematics import PartMotion
+from gear.articulation import PartMotion
 from gear.pipeline.stage2.hypotheses import (
     correlate,
     fit_plane,

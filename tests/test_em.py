@@ -7,7 +7,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from gear.kinematics import PartMotion, dq_apply
+from gear.articulation import PartMotion
+from gear.kinematics import dq_apply
 from gear.losses import knn_consistency_loss, region_pseudo_labels, sam_ce_loss
 from gear.pipeline.stage3.joint_types import classify_joints
 

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from gear import _core
-from gear.kinematics import PartMotion
+from gear.articulation import PartMotion
 from gear.metrics import match_parts
 from gear.pipeline.stage2.parts import coarse_init
 from gear.pipeline.stage3 import Refine

@@ -12,10 +12,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from gear.articulation import PartMotion
 from gear.camera import Camera
 from gear.config import make_config
 from gear.data import View
-from gear.kinematics import PartMotion, deform, dq_to_rt, quat_angle
+from gear.kinematics import deform, dq_to_rt, quat_angle
 from gear.pipeline.common import TrainView
 from gear.pipeline.stage3 import Refine
 from gear.splat_reference import rasterize_dense

@@ -8,8 +8,8 @@ import scipy.linalg
 import torch
 from scipy.spatial.transform import Rotation
 
+from gear.articulation import PartMotion, extract_joint, resolve_ambiguous_joint
 from gear.kinematics import (
-    PartMotion,
     deform,
     dq_apply,
     dq_blend,
@@ -18,12 +18,10 @@ from gear.kinematics import (
     dq_mul,
     dq_sclerp,
     dq_to_rt,
-    extract_joint,
     quat_angle,
     quat_from_matrix,
     quat_mul,
     quat_to_matrix,
-    resolve_ambiguous_joint,
 )
 
 DTYPES = [torch.float32, torch.float64]

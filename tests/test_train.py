@@ -165,7 +165,7 @@ def test_cli_stops_on_an_invalid_scene_with_its_problems(tmp_path, capsys):
 
 
 def refine_stage(**config):
-    from gear.kinematics import PartMotion
+    from gear.articulation import PartMotion
     from gear.pipeline.stage3 import Refine
 
     views = tiny_views()

@@ -14,8 +14,9 @@ import torch.nn.functional as F
 import trimesh
 from PIL import Image
 
+from gear.articulation import PartMotion
 from gear.camera import Camera
-from gear.kinematics import PartMotion, pose_parts
+from gear.kinematics import pose_parts
 from gear.splats import Gaussians, render
 
 BACKGROUND_PART = 255

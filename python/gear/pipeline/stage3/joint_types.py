@@ -10,7 +10,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
-from gear.kinematics import PartMotion, quat_angle, resolve_ambiguous_joint
+from gear.articulation import PartMotion, resolve_ambiguous_joint
+from gear.kinematics import quat_angle
 from gear.pipeline.common import check_finite
 from gear.pipeline.stage3.shared import RefineState, motion_optimizer
 
@@ -105,7 +106,7 @@ def classify_joints(
     """Turns revolute parts whose rotation is below `eps_deg` into prismatic ones.
 
     Without `score` this is the paper's rule. With `score` (the photometric + depth loss of a
-    candidate PartMotion, see kinematics.resolve_ambiguous_joint) a part is ambiguous when it
+    candidate PartMotion, see articulation.resolve_ambiguous_joint) a part is ambiguous when it
     turned less than `eps_deg` or when stage 2 left it more than one guess
     (`init_motions[k-1]`: a list of (R, t), e.g. Stage2Result.candidates). An
     ambiguous part's readings — its current motion, its slide and the stage-2 guesses — are

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from gear.kinematics import PartMotion, dq_conj, extract_joint
+from gear.articulation import PartMotion, extract_joint
+from gear.kinematics import dq_conj
 from gear.splats import Gaussians
 
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from gear import checkpoint
+from gear.articulation import PartMotion
 from gear.config import TrainConfig
-from gear.kinematics import PartMotion
 from gear.pipeline.common import TrainView
 from gear.pipeline.runner import Runner
 from gear.pipeline.stage2 import Stage2Result

@@ -9,9 +9,10 @@ from collections.abc import Sequence
 
 import torch
 
+from gear.articulation import PartMotion
 from gear.config import TrainConfig
 from gear.geometry import nearest_neighbours
-from gear.kinematics import PartMotion, pose_parts
+from gear.kinematics import pose_parts
 from gear.pipeline.common import Stage, TrainView, gaussian_lrs, image_terms
 from gear.splats import Densifier, Gaussians, render
 from gear.splats.init import scene_extent

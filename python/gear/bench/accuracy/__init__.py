@@ -15,29 +15,22 @@ given here) or paths to existing scene folders.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import math
 import os
 import platform
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-# metrics.json key, column/plot label, log-scale axis
-METRICS = [
-    ("axis_ang", "Axis Ang (deg)", True),
-    ("axis_pos", "Axis Pos (x10)", True),
-    ("geo_dist_deg", "Geo Dist rev (deg)", True),
-    ("geo_dist_m", "Geo Dist pri", True),
-    ("cd_s", "CD-s", True),
-    ("cd_m", "CD-m", True),
-    ("cd_w", "CD-w", True),
-    ("part_iou", "Part IoU", False),
-    ("psnr", "PSNR (dB)", False),
-]
+from gear.bench.accuracy.records import (
+    METRICS,
+    Run,
+    markdown_table,
+    read_csv,
+    write_csv,
+    write_results,
+)
+
 # The paper's EM intervals, studied on its 30k-iteration stage 3. A run with a shorter stage 3
 # uses each at the same fraction of its schedule (scaled_em_interval), so a variant keeps the
 # paper's number of E/M switches; unscaled, every interval from 500 on is a single E phase at
@@ -47,35 +40,6 @@ FLAWED_MASKS = ("mask-over", "mask-under")
 # Schedule fields placed at a fraction of the run; `fast` scales them by 1/3 with the iterations.
 _SCALED_FIELDS = ("densify_until", "stage3_densify_until", "joint_classify_iteration",
                   "em_refine_joint_iterations")
-
-
-@dataclass
-class Run:
-    """One training + evaluation: what was run, how long each stage took, what it scored."""
-
-    scene: str
-    budget: str
-    variant: str = "default"
-    iterations: int = 0  # stage-1 iterations per state (= stage-3 iterations)
-    timings: dict[str, float] = field(default_factory=dict)
-    metrics: dict[str, float | None] = field(default_factory=dict)
-    type_mismatches: int = 0
-    status: str = "ok"
-
-    @property
-    def total_seconds(self) -> float:
-        return float(sum(self.timings.values()))
-
-    def row(self) -> dict[str, Any]:
-        out: dict[str, Any] = {
-            "scene": self.scene, "budget": self.budget, "variant": self.variant,
-            "iterations": self.iterations, "total_s": round(self.total_seconds, 2),
-        }
-        out.update({f"time_{k}_s": round(v, 2) for k, v in sorted(self.timings.items())})
-        out.update({key: self.metrics.get(key) for key, _, _ in METRICS})
-        out["type_mismatches"] = self.type_mismatches
-        out["status"] = self.status
-        return out
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -243,178 +207,3 @@ def machine_description() -> str:
     except (ImportError, RuntimeError) as err:
         adapter = f"unavailable ({err})"
     return f"{cpu}, {os.cpu_count()} cores, {platform.system()}; adapter {adapter}"
-
-
-def write_csv(records: Sequence[Run], path: Path) -> None:
-    rows = [r.row() for r in records]
-    columns: list[str] = []
-    for row in rows:
-        columns += [c for c in row if c not in columns]
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=columns)
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({c: "" if row.get(c) is None else row.get(c) for c in columns})
-
-
-def read_csv(path: Path) -> list[Run]:
-    """The runs of an accuracy.csv written by `write_csv` (for --append)."""
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
-
-    def number(text: str | None) -> float | None:
-        return float(text) if text else None
-
-    records = []
-    for row in rows:
-        timings = {key[len("time_"):-len("_s")]: float(value) for key, value in row.items()
-                   if key.startswith("time_") and key.endswith("_s") and value}
-        records.append(Run(
-            row["scene"], row["budget"], row["variant"], int(row["iterations"] or 0), timings,
-            {key: number(row.get(key)) for key, _, _ in METRICS},
-            int(row["type_mismatches"] or 0), row["status"],
-        ))
-    return records
-
-
-def _cell(value: float | None) -> str:
-    if value is None or not math.isfinite(value):
-        return "-"
-    return f"{value:.3f}" if abs(value) < 100 else f"{value:.1f}"
-
-
-def markdown_table(records: Sequence[Run], machine: str) -> str:
-    """One row per run: budget, stage times, metrics; failures shown as such."""
-    stages = sorted({k for r in records for k in r.timings})
-    header = ["scene", "budget", "variant", "iters", *[f"{s} (s)" for s in stages], "total (s)",
-              *[label for _, label, _ in METRICS], "type mism."]
-    lines = [f"Machine: {machine}", "", "| " + " | ".join(header) + " |",
-             "|" + "---|" * len(header)]
-    for r in records:
-        cells = [r.scene, r.budget, r.variant, str(r.iterations)]
-        cells += [_cell(r.timings.get(s)) for s in stages] + [_cell(r.total_seconds)]
-        if r.status == "ok":
-            cells += [_cell(r.metrics.get(key)) for key, _, _ in METRICS]
-        else:
-            cells += [r.status.replace("|", "/")] + [""] * (len(METRICS) - 1)
-        cells.append(str(r.type_mismatches))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def plot(records: Sequence[Run], path: Path) -> None:
-    """Each metric against total training time; one line per scene (and variant)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
-
-    ok = [r for r in records if r.status == "ok" and r.total_seconds > 0]
-    cols = 3
-    rows = math.ceil(len(METRICS) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
-    lines: dict[str, list[Run]] = {}
-    for r in ok:
-        label = r.scene if r.variant == "default" else f"{r.scene} {r.variant}"
-        lines.setdefault(label, []).append(r)
-    # One colour per line in every panel, so the single legend holds for all of them.
-    colours = {name: f"C{i % 10}" for i, name in enumerate(lines)}
-    for ax, (key, label, log_y) in zip(axes.flat, METRICS, strict=False):
-        drawn = False
-        for name, runs in lines.items():
-            points = sorted((r.total_seconds, r.metrics.get(key)) for r in runs
-                            if r.metrics.get(key) is not None)
-            if log_y:  # zeros cannot sit on a log axis: shown at the axis floor instead
-                points = [(t, max(v, 1e-4)) for t, v in points]
-            if points:
-                ax.plot(*zip(*points, strict=True), marker="o", label=name,
-                        color=colours[name])
-                drawn = True
-        ax.set_xscale("log")
-        # Labelled ticks at 1-2-5 steps: plain decades often leave a short time range unlabelled.
-        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
-        ax.xaxis.set_major_formatter(ScalarFormatter())
-        ax.xaxis.set_minor_formatter(NullFormatter())
-        if log_y and drawn:
-            ax.set_yscale("log")
-        if not drawn:
-            ax.text(0.5, 0.5, "not computed", ha="center", va="center", transform=ax.transAxes)
-        ax.set_title(label)
-        ax.set_xlabel("training time (s)")
-        ax.grid(True, which="both", alpha=0.3)
-    for ax in list(axes.flat)[len(METRICS):]:
-        ax.axis("off")
-    if lines:
-        handles = [plt.Line2D([], [], color=c, marker="o", label=n) for n, c in colours.items()]
-        _legend_below(fig, handles)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-
-
-def _legend_below(fig, handles: list) -> None:  # noqa: ANN001 (a matplotlib Figure)
-    """One legend for every panel, under the grid, where it hides no data."""
-    fig.tight_layout()
-    fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0.0),
-               ncol=min(4, len(handles)), fontsize=8, frameon=False)
-
-
-def plot_ablation(records: Sequence[Run], path: Path) -> None:
-    """Ablation runs share a budget, so time is no axis: one panel per metric (and one for the
-    wall time), the variants along x, one bar per scene."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    ok = [r for r in records if r.status == "ok"]
-    variants_seen = list(dict.fromkeys(r.variant for r in ok))
-    scenes = list(dict.fromkeys(r.scene for r in ok))
-    value = {(r.scene, r.variant): r for r in ok}
-    panels = [("__time", "total time (s)", False), *METRICS]
-    cols = 3
-    rows = math.ceil(len(panels) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(5.0 * cols, 3.0 * rows), squeeze=False)
-    width = 0.8 / max(1, len(scenes))
-    x = np.arange(len(variants_seen))
-    for ax, (key, label, log_y) in zip(axes.flat, panels, strict=False):
-        drawn = False
-        for i, scene in enumerate(scenes):
-            heights = []
-            for variant in variants_seen:
-                run = value.get((scene, variant))
-                v = None if run is None else (
-                    run.total_seconds if key == "__time" else run.metrics.get(key))
-                heights.append(np.nan if v is None else v)
-            if not np.all(np.isnan(heights)):
-                ax.bar(x + (i - (len(scenes) - 1) / 2) * width, heights, width,
-                       color=f"C{i % 10}")
-                drawn = True
-        if log_y and drawn:
-            ax.set_yscale("log")
-        if not drawn:
-            ax.text(0.5, 0.5, "not computed", ha="center", va="center", transform=ax.transAxes)
-        ax.set_title(label)
-        ax.set_xticks(x, variants_seen, rotation=45, ha="right", fontsize=7)
-        ax.grid(True, axis="y", which="both", alpha=0.3)
-    for ax in list(axes.flat)[len(panels):]:
-        ax.axis("off")
-    handles = [plt.Rectangle((0, 0), 1, 1, color=f"C{i % 10}", label=s)
-               for i, s in enumerate(scenes)]
-    _legend_below(fig, handles)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-
-
-def write_results(records: Sequence[Run], out: Path, machine: str) -> dict[str, Path]:
-    """accuracy.csv, accuracy.md and accuracy.png in `out`; returns their paths."""
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {"csv": out / "accuracy.csv", "md": out / "accuracy.md", "png": out / "accuracy.png"}
-    write_csv(records, paths["csv"])
-    paths["md"].write_text(markdown_table(records, machine))
-    if any(r.variant != "default" for r in records):
-        plot_ablation(records, paths["png"])
-    else:
-        plot(records, paths["png"])
-    return paths
