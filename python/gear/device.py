@@ -27,10 +27,8 @@ def limit_torch_threads() -> int:
     """Sets torch's CPU thread count: GEAR_TORCH_THREADS, default 1; returns it.
 
     Training alternates small torch ops on one image with the rasterizer, whose software-Vulkan
-    workers already use every core; a second torch (OpenMP) thread then spin-waits against them.
-    Measured on 2 cores under load (average ~8): stage 1 of the fast profile at 128x128 took
-    1016 ms per iteration with torch's default 2 threads, 248 ms with 1 (torch ops 45 s -> 1 s
-    over 60 iterations).
+    workers already use every core; a second torch (OpenMP) thread then spin-waits against them
+    (measurements: docs/training.md, "Measured").
     """
     import os
 

@@ -58,10 +58,11 @@ class ReconstructState(Stage):
         return {k: v.item() for k, v in terms.items()}
 
     def state_dict(self) -> dict:
-        return {"generator": self.generator.get_state()}
+        return {"generator": self.generator.get_state(), "densifier": self.densifier.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         self.generator.set_state(state["generator"])
+        self.densifier.load_state_dict(state["densifier"])
 
     def checkpoint(self) -> dict:
         return {"current": checkpoint.gaussians_state(self.gaussians),

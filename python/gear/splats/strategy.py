@@ -37,6 +37,14 @@ class Densifier:
         self.grad_accum = torch.zeros(n)
         self.grad_count = torch.zeros(n)
 
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """The statistics gathered since the last edit: a run resumed inside a densification
+        interval densifies as the uninterrupted one does."""
+        return {"grad_accum": self.grad_accum.clone(), "grad_count": self.grad_count.clone()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        self.grad_accum, self.grad_count = state["grad_accum"], state["grad_count"]
+
     @torch.no_grad()
     def accumulate(self, rendered_means: torch.Tensor, camera: Camera) -> None:
         """Adds the screen-space (NDC) norm of dL/d(projected centre) of each visible Gaussian.

@@ -46,16 +46,25 @@ class Refine(EStep, MStep, JointTypes):
         return {"joints": self.joints_now()}
 
     def state_dict(self) -> dict:
+        current = self._neighbours_generation == self.gaussians.generation
         return {
             "generator": self.generator.get_state(),
+            "densifier": self.densifier.state_dict(),
             "motion": self.motion.state_dict(),
             "motion_optimizer": self.motion_optimizer.state_dict(),
+            # The KNN lists in use (they are kept while the centres move between edits), so a
+            # resumed run smooths the logits over the same neighbours.
+            "neighbours": self._neighbours if current else None,
         }
 
     def load_state_dict(self, state: dict) -> None:
         self.generator.set_state(state["generator"])
+        self.densifier.load_state_dict(state["densifier"])
         self.motion.load_state_dict(state["motion"])
         self.motion_optimizer.load_state_dict(state["motion_optimizer"])
+        if state["neighbours"] is not None:
+            self._neighbours = state["neighbours"]
+            self._neighbours_generation = self.gaussians.generation
 
     def checkpoint(self) -> dict:
         return {"current": checkpoint.gaussians_state(self.gaussians),
