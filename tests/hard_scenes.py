@@ -123,9 +123,10 @@ class Run:
 def run_stages(scene_dir: Path, out_dir: Path, config: TrainConfig) -> Run:
     """Stages 1-3 as `gear train` runs them (same stage entry points), keeping the stage-3
     object for inspection; the output files (renders, meshes) are not written."""
+    from gear.data.scene import STATES
     from gear.pipeline.common import TrainView
     from gear.pipeline.runner import Runner
-    from gear.pipeline.stage1 import STATES, reconstruct_states
+    from gear.pipeline.stage1 import reconstruct_states
     from gear.pipeline.stage2 import initialise_parts
     from gear.pipeline.stage3 import refine_parts
 

@@ -13,6 +13,7 @@ from gear.pipeline.stage2.hypotheses import (
     rotation_about_line,
 )
 from gear.pipeline.stage2.parts import coarse_init
+from gear.pipeline.stage2.voxels import split_static_dynamic
 
 FRONT = 2  # face id (axis * 2 + side) of the y = min face: cabinets are open at the front
 
@@ -291,3 +292,19 @@ def test_matter_only_the_open_state_shows_is_not_a_part():
     assert without.num_parts > 2  # the shelves pass the voxel tests alone
     assert result.num_parts == 2
     check_hinge(result, axis, pivot, 65.0, extent=1.9)
+
+
+def test_dilation_radius_grows_the_static_set():
+    """TrainConfig.dilation_radius reaches the static/dynamic split: a wider dilation of the
+    voxels both states occupy leaves fewer dynamic voxels in each state, and radius 0 counts as
+    dynamic only what one state alone occupies."""
+    start, end, *_ = door_scene(60.0, FRAMES["identity"], n=6000)
+    dynamic = {}
+    for radius in (0, 1, 2):
+        split = split_static_dynamic(start, end, 0.05, radius)
+        dynamic[radius] = int((split.labels[0] > 0).sum())
+        occupied = split.grid.voxelise(start).to_dense()
+        assert dynamic[radius] <= int(occupied.sum())
+    assert dynamic[0] > dynamic[1] > dynamic[2] > 0, dynamic
+    default = split_static_dynamic(start, end, 0.05)
+    assert int((default.labels[0] > 0).sum()) == dynamic[1]

@@ -21,10 +21,11 @@ import torch
 from gear import checkpoint, outputs
 from gear.config import TrainConfig
 from gear.data import load_scene
+from gear.data.scene import STATES
 from gear.device import limit_torch_threads
 from gear.pipeline.common import TrainView
 from gear.pipeline.runner import Runner
-from gear.pipeline.stage1 import STATES, reconstruct_states
+from gear.pipeline.stage1 import reconstruct_states
 from gear.pipeline.stage2 import Stage2Result, initialise_parts
 from gear.pipeline.stage3 import refine_parts
 

@@ -9,13 +9,13 @@ from dataclasses import dataclass
 
 from gear import checkpoint
 from gear.config import TrainConfig
+from gear.data.scene import STATES
 from gear.losses import opacity_binarisation
 from gear.pipeline.common import Stage, TrainView, check_finite, gaussian_lrs, image_terms, means_lr
 from gear.pipeline.runner import Runner
 from gear.splats import Densifier, Gaussians, render
 from gear.splats.init import initial_gaussians, scene_extent
 
-STATES = ("start", "end")
 # Weight of the silhouette loss on a view without depth (docs/method.md, "Stage 1").
 MASK_WEIGHT_WITHOUT_DEPTH = 1.0
 

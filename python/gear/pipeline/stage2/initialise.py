@@ -11,13 +11,13 @@ import torch
 from scipy.spatial import cKDTree
 
 from gear.config import TrainConfig
+from gear.data.scene import STATES
 from gear.pipeline.common import TrainView
 from gear.pipeline.runner import Runner
 from gear.pipeline.stage2.parts import coarse_init
 from gear.pipeline.stage2.surface import SurfaceTest
 from gear.splats import Gaussians
 
-STATES = ("start", "end")
 # Stage 2 sees only the centres of Gaussians at least this opaque, unless fewer than
 # STAGE2_MIN_OPAQUE_FRACTION of a state's Gaussians pass (docs/method.md, "Stage 2").
 STAGE2_MIN_OPACITY = 0.5
