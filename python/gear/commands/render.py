@@ -17,8 +17,10 @@ from PIL import Image
 from gear.camera import Camera
 
 FOV_X = np.deg2rad(40.0)
+ELEVATION_DEG = 25.0  # default camera elevation above the orbit plane
 MARGIN = 1.15  # the object's bounding sphere fills the view with this much room
 _AXES = {"x": 0, "y": 1, "z": 2}
+UP_CHOICES = ["x", "y", "z", "-x", "-y", "-z"]
 # --color parts: static part grey, movable parts in distinct hues (cycled past 9 parts).
 PART_PALETTE = np.array([
     [0.6, 0.6, 0.6], [0.89, 0.1, 0.11], [0.22, 0.49, 0.72], [0.3, 0.69, 0.29],
@@ -36,9 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--res", type=int, default=256, help="image width and height (default 256)")
     p.add_argument("--frames", type=int, default=0, metavar="K",
                    help="also write a K-frame start->end animation with a turning camera")
-    p.add_argument("--elevation", type=float, default=25.0,
-                   help="camera elevation above the orbit plane, degrees (default 25)")
-    p.add_argument("--up", default="z", choices=["x", "y", "z", "-x", "-y", "-z"],
+    p.add_argument("--elevation", type=float, default=ELEVATION_DEG,
+                   help=f"camera elevation above the orbit plane, degrees (default "
+                        f"{ELEVATION_DEG:g})")
+    p.add_argument("--up", default="z", choices=UP_CHOICES,
                    help="world axis the orbit turns about (default z)")
     p.add_argument("--color", choices=["rgb", "parts"], default="rgb",
                    help="rgb (the trained colours) or parts (a flat colour per part: grey "
@@ -50,21 +53,48 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run)
 
 
-def orbit_cameras(center: np.ndarray, radius: float, azimuths_deg: np.ndarray,
-                  elevation_deg: float, up: np.ndarray, res: int) -> list[Camera]:
-    """Square cameras looking at `center` from the given azimuths, far enough for a sphere of
-    `radius` to fit the view."""
+def orbit_direction(azimuth_deg: float, elevation_deg: float, up: np.ndarray) -> np.ndarray:
+    """Unit vector from the orbit centre to a camera at this azimuth (about `up`) and elevation."""
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
     side /= np.linalg.norm(side)
     ahead = np.cross(up, side)
-    distance = MARGIN * radius / np.sin(FOV_X / 2)
-    el = np.deg2rad(elevation_deg)
-    cams = []
-    for az in np.deg2rad(np.asarray(azimuths_deg, dtype=np.float64)):
-        d = np.cos(el) * (np.cos(az) * side + np.sin(az) * ahead) + np.sin(el) * up
-        cams.append(Camera.look_at(center + distance * d, center, up, FOV_X, res, res))
-    return cams
+    az, el = np.deg2rad(azimuth_deg), np.deg2rad(elevation_deg)
+    return np.cos(el) * (np.cos(az) * side + np.sin(az) * ahead) + np.sin(el) * up
+
+
+def fit_distance(radius: float, fov: float) -> float:
+    """Camera distance at which a sphere of `radius` fills a view of angle `fov` (radians),
+    with MARGIN room."""
+    return MARGIN * radius / np.sin(fov / 2)
+
+
+def orbit_cameras(center: np.ndarray, radius: float, azimuths_deg: np.ndarray,
+                  elevation_deg: float, up: np.ndarray, res: int,
+                  height: int | None = None) -> list[Camera]:
+    """Cameras `res` wide (and `height` tall, default square) looking at `center` from the
+    given azimuths, far enough for a sphere of `radius` to fit the narrower side of the view."""
+    height = res if height is None else height
+    fov_y = 2 * np.arctan(np.tan(FOV_X / 2) * height / res)
+    distance = fit_distance(radius, min(FOV_X, fov_y))
+    up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    return [Camera.look_at(center + distance * orbit_direction(az, elevation_deg, up), center,
+                           up, FOV_X, res, height)
+            for az in np.asarray(azimuths_deg, dtype=np.float64)]
+
+
+def part_colors(parts: np.ndarray) -> np.ndarray:
+    """[N,3] float32 flat colour of each part id: static grey, then PART_PALETTE's hues."""
+    parts = np.asarray(parts)
+    hues = len(PART_PALETTE) - 1
+    return PART_PALETTE[np.where(parts == 0, 0, 1 + (parts - 1) % hues)]
+
+
+def up_vector(name: str) -> np.ndarray:
+    """The unit world axis of an `--up` choice ("z", "-y", ...)."""
+    up = np.zeros(3)
+    up[_AXES[name[-1]]] = -1.0 if name.startswith("-") else 1.0
+    return up
 
 
 def _image(rgb: torch.Tensor) -> Image.Image:
@@ -90,16 +120,13 @@ def run(args: argparse.Namespace) -> int:
                         f"{args.background}")
     twin = Twin.load(args.out_dir)
     out_dir = args.out or args.out_dir / "twin_renders"
-    up = np.zeros(3)
-    up[_AXES[args.up[-1]]] = -1.0 if args.up.startswith("-") else 1.0
+    up = up_vector(args.up)
     background = torch.tensor(args.background, dtype=torch.float32)
     sweep = list(np.linspace(0.0, 1.0, max(args.frames, 2)))
     center, radius = twin.bounds(sorted(set(args.t) | set(sweep)))
     colors = None
     if args.color == "parts":
-        parts = twin.parts.numpy()
-        hues = len(PART_PALETTE) - 1
-        colors = torch.as_tensor(PART_PALETTE[np.where(parts == 0, 0, 1 + (parts - 1) % hues)])
+        colors = torch.as_tensor(part_colors(twin.parts.numpy()))
 
     def shot(s: float, cam: Camera) -> Image.Image:
         return _image(twin.render(s, cam, background, colors=colors).features)
