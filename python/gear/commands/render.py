@@ -2,17 +2,21 @@
 
 Cameras orbit the object (the sphere holding it at every requested state) at a fixed elevation
 about `--up`; `--frames K` adds an animation: K frames sweeping the state from start to end
-while the camera turns once around, saved as PNG frames, a strip and a GIF.
+while the camera turns once around, saved as PNG frames, a strip and a GIF. `--video FILE`
+writes a video (H.264 through imageio's ffmpeg): start -> end -> start while the camera turns
+once around, so it loops seamlessly.
 """
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 import torch
 from PIL import Image
+from tqdm import tqdm
 
 from gear.camera import Camera
 
@@ -20,6 +24,7 @@ FOV_X = np.deg2rad(40.0)
 ELEVATION_DEG = 25.0  # default camera elevation above the orbit plane
 MARGIN = 1.15  # the object's bounding sphere fills the view with this much room
 _AXES = {"x": 0, "y": 1, "z": 2}
+VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov")  # containers that hold H.264
 UP_CHOICES = ["x", "y", "z", "-x", "-y", "-z"]
 # --color parts: static part grey, movable parts in distinct hues (cycled past 9 parts).
 PART_PALETTE = np.array([
@@ -32,12 +37,21 @@ PART_PALETTE = np.array([
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="render the trained twin at intermediate states")
     p.add_argument("out_dir", type=Path, help="a trained run's output folder")
-    p.add_argument("--t", type=float, nargs="+", default=[0.0, 0.5, 1.0], metavar="S",
-                   help="states to render: 0 = start, 1 = end (default: 0 0.5 1)")
+    p.add_argument("--t", type=float, nargs="+", default=None, metavar="S",
+                   help="states to render: 0 = start, 1 = end (default: 0 0.5 1, or none when "
+                        "only --video is asked for)")
     p.add_argument("--views", type=int, default=8, help="orbit cameras per state (default 8)")
     p.add_argument("--res", type=int, default=256, help="image width and height (default 256)")
     p.add_argument("--frames", type=int, default=0, metavar="K",
                    help="also write a K-frame start->end animation with a turning camera")
+    p.add_argument("--video", type=Path, default=None, metavar="FILE",
+                   help="also write a video (.mp4, .mkv or .mov): start -> end -> start with "
+                        "the camera turning once around")
+    p.add_argument("--fps", type=int, default=24, help="video frame rate (default 24)")
+    p.add_argument("--duration", type=float, default=4.0, metavar="SEC",
+                   help="video length in seconds (default 4)")
+    p.add_argument("--size", type=int, nargs=2, default=[512, 512], metavar=("W", "H"),
+                   help="video frame width and height, even numbers (default 512 512)")
     p.add_argument("--elevation", type=float, default=ELEVATION_DEG,
                    help=f"camera elevation above the orbit plane, degrees (default "
                         f"{ELEVATION_DEG:g})")
@@ -105,12 +119,30 @@ def _image(rgb: torch.Tensor) -> Image.Image:
     return Image.fromarray(np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8))
 
 
-def run(args: argparse.Namespace) -> int:
+def video_path(states: int) -> tuple[np.ndarray, np.ndarray]:
+    """(states [n], azimuths in degrees [n]) of an n-frame loop: the state goes linearly from
+    0 up to 1 at the middle frame and back (the frame after the last is the first again)
+    while the camera turns once around."""
+    phase = np.arange(states) / states
+    return 1.0 - np.abs(1.0 - 2.0 * phase), 360.0 * phase
+
+
+def _write_video(path: Path, frames: Iterable[Image.Image], count: int, fps: int) -> None:
+    import imageio.v2 as imageio
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # yuv420p: the pixel format every player decodes; macro_block_size=1 keeps the exact size.
+    with imageio.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264",
+                            pixelformat="yuv420p", macro_block_size=1, quality=8) as writer:
+        for frame in tqdm(frames, total=count, desc="video", unit="frame", leave=False):
+            writer.append_data(np.asarray(frame))
+
+
+def _check_args(args: argparse.Namespace) -> None:
     from gear.cli import UserError
-    from gear.twin import Twin
 
     for name, value, low in (("--views", args.views, 1), ("--res", args.res, 8),
-                             ("--frames", args.frames, 0)):
+                             ("--frames", args.frames, 0), ("--fps", args.fps, 1)):
         if value < low:
             raise UserError(f"{name} must be at least {low}, got {value}")
     if any(not 0.0 <= s <= 1.0 for s in args.t):
@@ -118,12 +150,32 @@ def run(args: argparse.Namespace) -> int:
     if any(not 0.0 <= c <= 1.0 for c in args.background):
         raise UserError(f"--background: colour components must be in [0, 1], got "
                         f"{args.background}")
+    if args.video is not None:
+        if args.video.suffix.lower() not in VIDEO_SUFFIXES:
+            raise UserError(f"--video {args.video}: the file must end in one of "
+                            f"{', '.join(VIDEO_SUFFIXES)}")
+        if any(v < 16 or v % 2 for v in args.size):
+            raise UserError(f"--size: width and height must be even and at least 16 (H.264), "
+                            f"got {args.size[0]} {args.size[1]}")
+        if not (np.isfinite(args.duration) and args.duration * args.fps >= 2):
+            raise UserError(f"--duration {args.duration} at --fps {args.fps} gives fewer than "
+                            "2 frames")
+
+
+def run(args: argparse.Namespace) -> int:
+    from gear.twin import Twin
+
+    if args.t is None:
+        args.t = [] if args.video is not None else [0.0, 0.5, 1.0]
+    _check_args(args)
     twin = Twin.load(args.out_dir)
     out_dir = args.out or args.out_dir / "twin_renders"
     up = up_vector(args.up)
     background = torch.tensor(args.background, dtype=torch.float32)
     sweep = list(np.linspace(0.0, 1.0, max(args.frames, 2)))
-    center, radius = twin.bounds(sorted(set(args.t) | set(sweep)))
+    count = round(args.duration * args.fps) if args.video is not None else 0
+    states, azimuths = video_path(count)
+    center, radius = twin.bounds(sorted(set(args.t) | set(sweep) | set(states.tolist())))
     colors = None
     if args.color == "parts":
         colors = torch.as_tensor(part_colors(twin.parts.numpy()))
@@ -138,8 +190,9 @@ def run(args: argparse.Namespace) -> int:
         folder.mkdir(parents=True, exist_ok=True)
         for v, cam in enumerate(cams):
             shot(s, cam).save(folder / f"{v:03d}.png")
-    print(f"rendered {len(args.t)} state(s) x {args.views} view(s) at {args.res}x{args.res} "
-          f"into {out_dir}")
+    if args.t:
+        print(f"rendered {len(args.t)} state(s) x {args.views} view(s) at {args.res}x"
+              f"{args.res} into {out_dir}")
 
     if args.frames:
         states = sweep if args.frames > 1 else [0.0]
@@ -157,4 +210,12 @@ def run(args: argparse.Namespace) -> int:
         frames[0].save(folder / "animation.gif", save_all=True, append_images=frames[1:],
                        duration=80, loop=0)
         print(f"animation: {args.frames} frame(s), strip.png and animation.gif in {folder}")
+
+    if args.video is not None:
+        width, height = args.size
+        cams = orbit_cameras(center, radius, azimuths, args.elevation, up, width, height)
+        _write_video(args.video, (shot(s, cam) for s, cam in zip(states, cams, strict=True)),
+                     count, args.fps)
+        print(f"video: {count} frame(s) at {args.fps} fps, {width}x{height}, start -> end -> "
+              f"start, in {args.video}")
     return 0
