@@ -125,8 +125,8 @@ def viewer(twin, out_dir):
 
 
 def _node_points(viewer: TwinViewer, part: int) -> np.ndarray:
-    node = viewer._nodes[part]
-    return _apply(node.wxyz, node.position, viewer._splats[part].centers)
+    node = viewer.part_nodes[part]
+    return _apply(node.wxyz, node.position, viewer.splats[part].centers)
 
 
 @pytest.mark.parametrize("s", [1.0, 0.5])
@@ -184,6 +184,12 @@ def test_view_refuses_a_busy_port(out_dir, capsys):
     err = capsys.readouterr().err.strip()
     assert err == (f"gear: error: port {port} on 127.0.0.1 is busy (another server?): pass a "
                    "free one with --port")
+
+
+def test_view_refuses_an_unknown_host(out_dir, capsys):
+    assert main(["view", str(out_dir), "--host", "192.0.2.1", "--port", str(free_port())]) == 1
+    assert capsys.readouterr().err.strip() == (
+        "gear: error: --host 192.0.2.1: not an address of this machine")
 
 
 def test_view_command_prints_the_url_and_stops_on_ctrl_c(out_dir):

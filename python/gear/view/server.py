@@ -9,6 +9,7 @@ to the same fraction of its motion, exactly the interpolation `gear render` uses
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import socket
 from collections.abc import Iterable
@@ -37,12 +38,19 @@ START_AZIMUTH_DEG = -135.0  # first view: obliquely from between +x and -y (for 
 def port_is_free(host: str, port: int) -> bool:
     """Whether a server could listen on host:port now (viser itself would silently move to the
     next free port, leaving the printed URL wrong). SO_REUSEADDR as the server sets it: a port
-    whose last connections linger in TIME_WAIT is free, one with a listener is not."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+    whose last connections linger in TIME_WAIT is free, one with a listener is not. An address
+    that names no interface of this machine is a ValueError."""
+    try:
+        family, kind, _, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except socket.gaierror:
+        raise ValueError(f"--host {host}: not an address of this machine") from None
+    with socket.socket(family, kind) as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            probe.bind((host, port))
-        except OSError:
+            probe.bind(address)
+        except OSError as err:
+            if err.errno == errno.EADDRNOTAVAIL:
+                raise ValueError(f"--host {host}: not an address of this machine") from None
             return False
     return True
 
@@ -53,8 +61,8 @@ def joint_label(index: int, joint: TwinJoint) -> str:
 
 
 class TwinViewer:
-    """A running viser server showing `twin`; the handles are public so that a test (or a
-    script) can drive the same controls a person drags in the page."""
+    """A running viser server showing `twin`. Its handles (sliders, checkboxes, part nodes) are
+    public: a script or a test drives the same controls a person drags in the page."""
 
     def __init__(self, twin: Twin, out_dir: Path, host: str = "127.0.0.1", port: int = 8080,
                  up: np.ndarray | None = None) -> None:
@@ -73,14 +81,14 @@ class TwinViewer:
         cam.position = center + fit_distance(radius, cam.fov) * orbit_direction(
             START_AZIMUTH_DEG, ELEVATION_DEG, up)
 
-        self._splats: dict[int, PartSplats] = {p.part: p for p in part_splats(twin)}
-        self._nodes = {k: self.server.scene.add_frame(f"/part_{k}", show_axes=False)
+        self.splats: dict[int, PartSplats] = {p.part: p for p in part_splats(twin)}
+        self.part_nodes = {k: self.server.scene.add_frame(f"/part_{k}", show_axes=False)
                        for k in range(twin.num_parts)}
         self.splat_handles = {
             k: self.server.scene.add_gaussian_splats(
                 f"/part_{k}/gaussians", centers=p.centers, covariances=p.covariances,
                 rgbs=p.rgb, opacities=p.opacities)
-            for k, p in self._splats.items()}
+            for k, p in self.splats.items()}
         flat = part_colors(np.arange(twin.num_parts))
         self.mesh_handles = {
             k: self.server.scene.add_mesh_simple(
@@ -93,7 +101,7 @@ class TwinViewer:
 
     def _add_axis(self, index: int, joint: TwinJoint, center: np.ndarray,
                   radius: float) -> viser.LineSegmentsHandle:
-        part = self._splats.get(joint.part)
+        part = self.splats.get(joint.part)
         part_center = part.centers.mean(axis=0) if part is not None else center
         ends = axis_segment(joint, part_center, center, radius)
         return self.server.scene.add_line_segments(
@@ -139,14 +147,14 @@ class TwinViewer:
     def _move_joint(self, index: int) -> None:
         joint = self.twin.joints[index]
         wxyz, position = part_pose(joint, joint_fraction(joint, self.joint_sliders[index].value))
-        node = self._nodes[joint.part]
+        node = self.part_nodes[joint.part]
         with self.server.atomic():  # rotation and translation land in the same frame
             node.wxyz, node.position = wxyz, position
 
     def _recolor(self) -> None:
         use_parts = self.color_mode.value == "parts"
         for k, handle in self.splat_handles.items():
-            p = self._splats[k]
+            p = self.splats[k]
             handle.set_gaussians(p.centers, p.covariances, p.part_rgb if use_parts else p.rgb,
                                  p.opacities)
 
