@@ -18,6 +18,16 @@ if [ ${#missing[@]} -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
 fi
 
+# 1b. Headless Chromium and its WebDriver for the browser test of `gear view` (tests skip
+#     without them). GEAR_NO_BROWSER=1 leaves them out.
+if [ -z "${GEAR_NO_BROWSER:-}" ] && ! command -v chromedriver >/dev/null; then
+  echo "setup: installing chromium chromium-driver (the viewer's browser test)"
+  sudo=""
+  [ "$(id -u)" -eq 0 ] || sudo="sudo"
+  $sudo apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends chromium chromium-driver >/dev/null
+fi
+
 # 2. Toolchains the machine must already have.
 command -v cargo >/dev/null || { echo "setup: cargo not found; install Rust (rustup)" >&2; exit 1; }
 command -v python3.11 >/dev/null || { echo "setup: python3.11 not found" >&2; exit 1; }
