@@ -6,6 +6,7 @@
 
 mod backward;
 pub mod constants;
+pub mod cpu;
 mod forward;
 mod frame;
 mod kernels;
