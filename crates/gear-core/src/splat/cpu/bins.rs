@@ -76,15 +76,15 @@ fn edge_minimum(q: f32, a: f32, b: f32, c: f32, lo: f32, hi: f32) -> f32 {
     a * q * q + 2.0 * b * q * t + c * t * t
 }
 
-/// Whether the 1/255 ellipse of `p` (level `level`) reaches a pixel centre of tile (tx, ty),
+/// Whether the 1/255 ellipse of `s` (level `level`) reaches a pixel centre of tile (tx, ty),
 /// with tile_test.wgsl's margin for f32 rounding.
-fn meets_tile(p: &Projection, level: f32, tx: u32, ty: u32) -> bool {
+fn meets_tile(s: &Splat, level: f32, tx: u32, ty: u32) -> bool {
     let tile = TILE as f32;
-    let (ux, uy) = (p.mean2d.x, p.mean2d.y);
+    let (ux, uy) = (s.u, s.v);
     let (cx, cy) = (tx as f32 * tile, ty as f32 * tile);
     let lo = [cx + 0.5 - ux, cy + 0.5 - uy];
     let hi = [cx + tile - 0.5 - ux, cy + tile - 0.5 - uy];
-    let (a, b, c) = (p.conic.x, p.conic.y, p.conic.z);
+    let (a, b, c) = (s.a, s.b, s.c);
     let mut least = 0.0f32;
     if lo[0] > 0.0 || lo[1] > 0.0 || hi[0] < 0.0 || hi[1] < 0.0 {
         least = edge_minimum(lo[0], a, b, c, lo[1], hi[1])
@@ -140,11 +140,9 @@ pub(super) struct Bins {
     /// depth order).
     pub tile_offsets: Vec<u32>,
     pub entries: Vec<u32>,
-    /// Gaussians with at least one pair, in depth order.
-    pub order: Vec<u32>,
-    /// The pairs of `order[r]` are at `entries[pair_slots[rank_offsets[r]..rank_offsets[r + 1]]]`,
+    /// Gaussian g's pairs are at `entries[pair_slots[pair_offsets[g]..pair_offsets[g + 1]]]`,
     /// in increasing tile order.
-    pub rank_offsets: Vec<u32>,
+    pub pair_offsets: Vec<u32>,
     pub pair_slots: Vec<u32>,
 }
 
@@ -156,6 +154,11 @@ impl Bins {
     /// The list range of tile `t`.
     pub fn range(&self, t: usize) -> std::ops::Range<usize> {
         self.tile_offsets[t] as usize..self.tile_offsets[t + 1] as usize
+    }
+
+    /// The slots of Gaussian `g`'s pairs.
+    pub fn slots(&self, g: usize) -> &[u32] {
+        &self.pair_slots[self.pair_offsets[g] as usize..self.pair_offsets[g + 1] as usize]
     }
 }
 
@@ -173,65 +176,82 @@ pub(super) fn split_lengths<T>(
     pieces
 }
 
+/// What binning keeps of a projected Gaussian: its blend data, and what the tile test needs.
+#[derive(Debug, Clone, Copy, Default)]
+struct Binned {
+    splat: Splat,
+    /// The unwidened 1/255 level, and the tile rectangle (x0, y0, x1, y1).
+    level: f32,
+    rect: [u32; 4],
+    /// Tiles of the rectangle the ellipse meets (0 when culled).
+    count: u32,
+}
+
+impl Binned {
+    /// The tiles it meets, row-major (the test of tile_test.wgsl on the rectangle).
+    fn tiles(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
+        let r = self.rect;
+        (r[1]..r[3])
+            .flat_map(move |ty| (r[0]..r[2]).map(move |tx| (tx, ty)))
+            .filter(|&(tx, ty)| meets_tile(&self.splat, self.level, tx, ty))
+    }
+}
+
 /// Projects and bins `gaussians`; call inside the executor's thread pool.
+///
+/// Everything per Gaussian runs in index order (parallel, streaming through memory); only the
+/// final scatter of the pairs into the tile lists walks the Gaussians in depth order.
 pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     let view = View::new(camera);
     let tiles = [camera.width.div_ceil(TILE), camera.height.div_ceil(TILE)];
     let n = gaussians.len();
-    let projected: Vec<Option<(Projection, f32, [u32; 4])>> = (0..n)
+    let binned: Vec<Binned> = (0..n)
         .into_par_iter()
         .map(|i| {
-            let p = project(gaussians, i, &view)?;
+            let Some(p) = project(gaussians, i, &view) else {
+                return Binned::default();
+            };
             let level = p.level();
-            let rect = tile_rect(&p, level, tiles)?;
-            Some((p, level, rect))
-        })
-        .collect();
-    let splats: Vec<Splat> = projected
-        .par_iter()
-        .map(|p| {
-            p.as_ref()
-                .map_or_else(Splat::default, |(p, _, _)| Splat::new(p))
+            let Some(rect) = tile_rect(&p, level, tiles) else {
+                return Binned::default();
+            };
+            let mut b = Binned {
+                splat: Splat::new(&p),
+                level,
+                rect,
+                count: 0,
+            };
+            b.count = b.tiles().count() as u32;
+            b
         })
         .collect();
 
-    let mut by_depth: Vec<u64> = projected
-        .iter()
-        .enumerate()
-        .filter_map(|(i, p)| {
-            // z > 0, so its bits order like the floats.
-            p.as_ref()
-                .map(|(p, _, _)| (u64::from(p.t.z.to_bits()) << 32) | i as u64)
-        })
-        .collect();
-    by_depth.par_sort_unstable();
-
-    // The tiles each Gaussian meets, in depth order, row-major within its rectangle.
-    let counts: Vec<usize> = by_depth
-        .par_iter()
-        .map(|&key| {
-            let (p, level, r) = projected[key as u32 as usize].as_ref().unwrap();
-            (r[1]..r[3])
-                .flat_map(|ty| (r[0]..r[2]).map(move |tx| (tx, ty)))
-                .filter(|&(tx, ty)| meets_tile(p, *level, tx, ty))
-                .count()
-        })
-        .collect();
-    let mut tile_ids = vec![0u32; counts.iter().sum()];
-    split_lengths(&mut tile_ids, counts.iter().copied())
+    // The tiles of each Gaussian, in index order.
+    let mut pair_offsets = vec![0u32; n + 1];
+    for (i, b) in binned.iter().enumerate() {
+        pair_offsets[i + 1] = pair_offsets[i] + b.count;
+    }
+    let mut tile_ids = vec![0u32; pair_offsets[n] as usize];
+    split_lengths(&mut tile_ids, binned.iter().map(|b| b.count as usize))
         .into_par_iter()
-        .zip(by_depth.par_iter())
-        .for_each(|(out, &key)| {
-            let (p, level, r) = projected[key as u32 as usize].as_ref().unwrap();
-            let met = (r[1]..r[3])
-                .flat_map(|ty| (r[0]..r[2]).map(move |tx| (tx, ty)))
-                .filter(|&(tx, ty)| meets_tile(p, *level, tx, ty));
-            for (slot, (tx, ty)) in out.iter_mut().zip(met) {
+        .zip(binned.par_iter())
+        .for_each(|(out, b)| {
+            for (slot, (tx, ty)) in out.iter_mut().zip(b.tiles()) {
                 *slot = ty * tiles[0] + tx;
             }
         });
 
-    // Counting sort of the pairs by tile; pairs arrive in depth order, so lists are too.
+    // Depth order of the Gaussians with pairs; z > 0, so its bits order like the floats, and
+    // the index breaks ties.
+    let mut by_depth: Vec<u64> = binned
+        .iter()
+        .enumerate()
+        .filter(|(_, b)| b.count > 0)
+        .map(|(i, b)| (u64::from(b.splat.z.to_bits()) << 32) | i as u64)
+        .collect();
+    by_depth.par_sort_unstable();
+
+    // Counting sort of the pairs by tile, fed in depth order, so every list is in depth order.
     let tile_count = (tiles[0] * tiles[1]) as usize;
     let mut tile_offsets = vec![0u32; tile_count + 1];
     for &t in &tile_ids {
@@ -243,33 +263,23 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     let mut cursor = tile_offsets[..tile_count].to_vec();
     let mut entries = vec![0u32; tile_ids.len()];
     let mut pair_slots = vec![0u32; tile_ids.len()];
-    let mut order = Vec::with_capacity(by_depth.len());
-    let mut rank_offsets = Vec::with_capacity(by_depth.len() + 1);
-    rank_offsets.push(0u32);
-    let mut pair = 0usize;
-    for (&key, &count) in by_depth.iter().zip(&counts) {
-        if count == 0 {
-            continue;
-        }
+    for &key in &by_depth {
         let g = key as u32;
-        for _ in 0..count {
+        let pairs = pair_offsets[g as usize] as usize..pair_offsets[g as usize + 1] as usize;
+        for pair in pairs {
             let t = tile_ids[pair] as usize;
             entries[cursor[t] as usize] = g;
             pair_slots[pair] = cursor[t];
             cursor[t] += 1;
-            pair += 1;
         }
-        order.push(g);
-        rank_offsets.push(pair as u32);
     }
     Bins {
         tiles_x: tiles[0],
         tiles_y: tiles[1],
-        splats,
+        splats: binned.iter().map(|b| b.splat).collect(),
         tile_offsets,
         entries,
-        order,
-        rank_offsets,
+        pair_offsets,
         pair_slots,
     }
 }

@@ -96,7 +96,9 @@ pub fn forward_in(
     gaussians.validate()?;
     options.validate(gaussians.channels)?;
     pool.install(|| {
+        let t0 = std::time::Instant::now();
         let bins = bin(gaussians, camera);
+        let t1 = std::time::Instant::now();
         let scene = Scene {
             bins: &bins,
             features: gaussians.features,
@@ -107,6 +109,7 @@ pub fn forward_in(
             depth: options.depth,
         };
         let (features, alpha, depth, pixels, counts) = blend(&scene);
+        if std::env::var("GEAR_PROFILE").is_ok() { eprintln!("bin {:?} blend {:?} {:?} pairs {}", t1 - t0, t1.elapsed(), counts, bins.pairs()); }
         let n = gaussians.len();
         let word = 4u64;
         let state_bytes = word
@@ -114,7 +117,7 @@ pub fn forward_in(
                 + n * std::mem::size_of::<bins::Splat>() / 4
                 + bins.tile_offsets.len()
                 + 2 * bins.entries.len() // entries, pair slots
-                + 2 * bins.order.len()
+                + bins.pair_offsets.len()
                 + 2 * pixels.final_t.len()) as u64;
         let stats = RasterStats {
             pairs: bins.pairs() as u64,
@@ -198,10 +201,6 @@ fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGra
     let bins = &state.bins;
     let stride = GEOMETRY + if features_grad { channels } else { 0 };
     let view = View::new(&state.camera);
-    let mut rank = vec![u32::MAX; n];
-    for (r, &g) in bins.order.iter().enumerate() {
-        rank[g as usize] = r as u32;
-    }
     let out_channels = if features_grad { channels } else { 0 };
     // One (unused) column without feature gradients keeps the chunks aligned with Gaussians.
     let width = out_channels.max(1);
@@ -217,13 +216,11 @@ fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGra
             let mut sums = vec![0.0f32; stride];
             for (k, out) in geometry.iter_mut().enumerate() {
                 let g = ci * chunk + k;
-                let r = rank[g];
-                if r == u32::MAX {
+                let slots = bins.slots(g);
+                if slots.is_empty() {
                     continue;
                 }
                 sums.fill(0.0);
-                let slots = &bins.pair_slots[bins.rank_offsets[r as usize] as usize
-                    ..bins.rank_offsets[r as usize + 1] as usize];
                 for &slot in slots {
                     let record = &records[slot as usize * stride..(slot as usize + 1) * stride];
                     for (s, v) in sums.iter_mut().zip(record) {
