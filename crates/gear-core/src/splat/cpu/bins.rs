@@ -7,6 +7,7 @@
 
 use rayon::prelude::*;
 
+use super::lanes::with_avx2;
 use super::project::{project, Projection, View};
 use super::TILE;
 use crate::splat::types::{Camera, Gaussians};
@@ -78,6 +79,7 @@ fn edge_minimum(q: f32, a: f32, b: f32, c: f32, lo: f32, hi: f32) -> f32 {
 
 /// Whether the 1/255 ellipse of `s` (level `level`) reaches a pixel centre of tile (tx, ty),
 /// with tile_test.wgsl's margin for f32 rounding.
+#[inline(always)]
 fn meets_tile(s: &Splat, level: f32, tx: u32, ty: u32) -> bool {
     let tile = TILE as f32;
     let (ux, uy) = (s.u, s.v);
@@ -105,6 +107,7 @@ fn meets_tile(s: &Splat, level: f32, tx: u32, ty: u32) -> bool {
 
 /// Tiles [x0, x1) x [y0, y1) holding a pixel centre in the Gaussian's per-axis 1/255 box
 /// (project.wgsl), or None.
+#[inline(always)]
 fn tile_rect(p: &Projection, level: f32, tiles: [u32; 2]) -> Option<[u32; 4]> {
     let extent = [
         (level * p.cov.x).sqrt() + 1.0,
@@ -185,16 +188,83 @@ struct Binned {
     rect: [u32; 4],
     /// Tiles of the rectangle the ellipse meets (0 when culled).
     count: u32,
+    /// Which tiles of the rectangle (row-major bits) it meets, for rectangles of up to 64
+    /// tiles (larger ones are tested again when their pairs are written).
+    met: u64,
 }
 
 impl Binned {
-    /// The tiles it meets, row-major (the test of tile_test.wgsl on the rectangle).
-    fn tiles(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
+    /// The tiles of its rectangle, row-major.
+    fn rect_tiles(&self) -> impl Iterator<Item = (u32, u32)> {
         let r = self.rect;
-        (r[1]..r[3])
-            .flat_map(move |ty| (r[0]..r[2]).map(move |tx| (tx, ty)))
-            .filter(|&(tx, ty)| meets_tile(&self.splat, self.level, tx, ty))
+        (r[1]..r[3]).flat_map(move |ty| (r[0]..r[2]).map(move |tx| (tx, ty)))
     }
+
+    fn area(&self) -> u32 {
+        (self.rect[2] - self.rect[0]) * (self.rect[3] - self.rect[1])
+    }
+
+    /// Runs the tile test (tile_test.wgsl) on the rectangle; a one-tile rectangle needs none
+    /// (the blend tests pixels).
+    fn test_tiles(&mut self) {
+        if self.area() == 1 {
+            (self.count, self.met) = (1, 1);
+        } else if self.area() <= 64 {
+            self.met = 0;
+            for (bit, (tx, ty)) in self.rect_tiles().enumerate() {
+                if meets_tile(&self.splat, self.level, tx, ty) {
+                    self.met |= 1 << bit;
+                }
+            }
+            self.count = self.met.count_ones();
+        } else {
+            let met = self
+                .rect_tiles()
+                .filter(|&(tx, ty)| meets_tile(&self.splat, self.level, tx, ty));
+            self.count = met.count() as u32;
+        }
+    }
+
+    /// The tiles it meets, row-major.
+    fn tiles(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
+        let small = self.area() <= 64;
+        self.rect_tiles()
+            .enumerate()
+            .filter_map(move |(bit, (tx, ty))| {
+                let met = if small {
+                    self.met & (1 << bit) != 0
+                } else {
+                    meets_tile(&self.splat, self.level, tx, ty)
+                };
+                met.then_some((tx, ty))
+            })
+    }
+}
+
+with_avx2!(
+    /// Gaussian `i` projected and tested against the tiles of its rectangle.
+    fn bin_one(gaussians: &Gaussians, i: usize, view: &View, tiles: [u32; 2]) -> Binned =
+        bin_one_body
+);
+
+#[inline(always)]
+fn bin_one_body(gaussians: &Gaussians, i: usize, view: &View, tiles: [u32; 2]) -> Binned {
+    let Some(p) = project(gaussians, i, view) else {
+        return Binned::default();
+    };
+    let level = p.level();
+    let Some(rect) = tile_rect(&p, level, tiles) else {
+        return Binned::default();
+    };
+    let mut b = Binned {
+        splat: Splat::new(&p),
+        level,
+        rect,
+        count: 0,
+        met: 0,
+    };
+    b.test_tiles();
+    b
 }
 
 /// Projects and bins `gaussians`; call inside the executor's thread pool.
@@ -207,23 +277,7 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     let n = gaussians.len();
     let binned: Vec<Binned> = (0..n)
         .into_par_iter()
-        .map(|i| {
-            let Some(p) = project(gaussians, i, &view) else {
-                return Binned::default();
-            };
-            let level = p.level();
-            let Some(rect) = tile_rect(&p, level, tiles) else {
-                return Binned::default();
-            };
-            let mut b = Binned {
-                splat: Splat::new(&p),
-                level,
-                rect,
-                count: 0,
-            };
-            b.count = b.tiles().count() as u32;
-            b
-        })
+        .map(|i| bin_one(gaussians, i, &view, tiles))
         .collect();
 
     // The tiles of each Gaussian, in index order.

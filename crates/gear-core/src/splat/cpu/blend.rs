@@ -10,7 +10,7 @@
 use rayon::prelude::*;
 
 use super::bins::{Bins, Splat};
-use super::lanes::{evaluate, Lanes, LANES};
+use super::lanes::{evaluate, with_avx2, Lanes, LANES};
 use super::TILE;
 use crate::splat::constants::MIN_TRANSMITTANCE;
 
@@ -71,7 +71,7 @@ impl TileList {
 /// Where a pixel row of a tile lies.
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Row {
-    /// Pixels inside the image (1..=8).
+    /// Pixels inside the image (0 for a row below it, else 1..=8).
     pub len: usize,
     /// Pixel-centre y and the pixel-centre x of the eight lanes.
     pub cy: f32,
@@ -79,18 +79,41 @@ pub(super) struct Row {
 }
 
 impl Row {
-    pub fn new(x0: u32, y: u32, width: u32) -> Self {
+    pub fn new(x0: u32, y: u32, width: u32, height: u32) -> Self {
         Row {
-            len: (width - x0).min(LANES as u32) as usize,
+            len: if y < height {
+                (width - x0).min(LANES as u32) as usize
+            } else {
+                0
+            },
             cy: y as f32 + 0.5,
             xs: std::array::from_fn(|i| x0 as f32 + 0.5 + i as f32),
         }
     }
 
+    /// The TILE rows of tile (tx, ty).
+    pub fn of_tile(tx: u32, ty: u32, width: u32, height: u32) -> [Row; TILE as usize] {
+        std::array::from_fn(|r| Row::new(tx * TILE, ty * TILE + r as u32, width, height))
+    }
+
     /// Whether entry `s` can reach one of the row's pixels; `dy` is cy - v.
     #[inline(always)]
     pub fn meets(&self, s: &Splat, dy: f32) -> bool {
-        s.meets_row(dy, self.xs[0], self.xs[self.len - 1])
+        s.meets_row(dy, self.xs[0], self.xs[self.len.max(1) - 1])
+    }
+}
+
+/// The rows of a tile whose first pixel centre is at `y0` that entry `s` may reach: those
+/// within its ellipse's vertical extent (a superset; [`Row::meets`] decides).
+#[inline(always)]
+pub(super) fn rows_of(s: &Splat, y0: f32) -> std::ops::Range<usize> {
+    let h = s.reach.max(0.0).sqrt() + 0.01;
+    let lo = (s.v - h - y0).ceil().max(0.0);
+    let hi = (s.v + h - y0).floor().min(TILE as f32 - 1.0);
+    if hi < lo {
+        0..0
+    } else {
+        lo as usize..hi as usize + 1
     }
 }
 
@@ -148,95 +171,117 @@ pub(super) fn blend(scene: &Scene) -> (Vec<f32>, Vec<f32>, Vec<f32>, PixelState,
     (features, alpha, depth, state, counts)
 }
 
-fn blend_band(scene: &Scene, band: u32, mut out: BandImages) -> BlendCounts {
+with_avx2!(
+    /// Blends the tiles of one band of rows.
+    fn blend_band(scene: &Scene, band: u32, out: BandImages) -> BlendCounts = blend_band_body
+);
+
+#[inline(always)]
+fn blend_band_body(scene: &Scene, band: u32, mut out: BandImages) -> BlendCounts {
     let bins = scene.bins;
     let mut list = TileList::new();
-    let mut acc = vec![[0.0f32; LANES]; scene.channels];
+    let mut acc = vec![[0.0f32; LANES]; TILE as usize * scene.channels];
     let mut counts = BlendCounts::default();
     for tx in 0..bins.tiles_x {
         let tile = (band * bins.tiles_x + tx) as usize;
         list.gather(bins, tile, scene.features, scene.channels);
+        let rows = Row::of_tile(tx, band, scene.width, scene.height);
         let start = bins.tile_offsets[tile];
-        for r in 0..TILE {
-            let y = band * TILE + r;
-            if y >= scene.height {
-                break;
-            }
-            let row = Row::new(tx * TILE, y, scene.width);
-            let first = (r * scene.width + tx * TILE) as usize;
-            counts = counts.add(blend_row(
-                scene, &list, start, &row, &mut acc, first, &mut out,
-            ));
-        }
+        counts = counts.add(blend_tile(
+            scene, &list, start, &rows, &mut acc, tx, &mut out,
+        ));
     }
     counts
 }
 
-/// Blends one pixel row front to back and stores its pixels at band offset `first`.
-fn blend_row(
+/// A pixel row's blend state.
+#[derive(Clone, Copy)]
+struct RowState {
+    t: Lanes,
+    depth: Lanes,
+    consumed: [u32; LANES],
+    stopped: [bool; LANES],
+    /// Pixels still blending.
+    live: usize,
+}
+
+/// Blends one tile's list front to back into its rows and stores their pixels. The list is
+/// walked once for all rows; an entry visits only the rows its ellipse spans.
+#[inline(always)]
+fn blend_tile(
     scene: &Scene,
     list: &TileList,
     start: u32,
-    row: &Row,
+    rows: &[Row; TILE as usize],
     acc: &mut [Lanes],
-    first: usize,
+    tx: u32,
     out: &mut BandImages,
 ) -> BlendCounts {
     let channels = scene.channels;
-    let mut t = [1.0f32; LANES];
-    let mut depth = [0.0f32; LANES];
-    let mut consumed = [start; LANES];
-    let mut stopped: [bool; LANES] = std::array::from_fn(|i| i >= row.len);
-    let mut live = row.len;
+    let mut state: [RowState; TILE as usize] = std::array::from_fn(|r| RowState {
+        t: [1.0; LANES],
+        depth: [0.0; LANES],
+        consumed: [start; LANES],
+        stopped: std::array::from_fn(|i| i >= rows[r].len),
+        live: rows[r].len,
+    });
+    let mut live: usize = state.iter().map(|s| s.live).sum();
     let mut counts = BlendCounts::default();
-    for a in acc.iter_mut() {
-        *a = [0.0; LANES];
-    }
+    acc.fill([0.0; LANES]);
+    let y0 = rows[0].cy;
     for (j, s) in list.splats.iter().enumerate() {
         if live == 0 {
             break;
         }
-        let dy = row.cy - s.v;
-        if !row.meets(s, dy) {
-            continue;
-        }
-        counts.evaluations += row.len as u64;
-        let e = evaluate(s, &row.xs, dy);
         let next_consumed = start + j as u32 + 1;
-        let mut w = [0.0f32; LANES];
-        for i in 0..LANES {
-            let next = t[i] * (1.0 - e.alpha[i]);
-            let hit = !stopped[i] && e.passes[i];
-            let stop = hit && next < MIN_TRANSMITTANCE as f32;
-            let blend = hit && !stop;
-            stopped[i] |= stop;
-            live -= usize::from(stop);
-            counts.contributions += u64::from(blend);
-            w[i] = if blend { e.alpha[i] * t[i] } else { 0.0 };
-            t[i] = if blend { next } else { t[i] };
-            consumed[i] = if blend { next_consumed } else { consumed[i] };
-        }
         let f = &list.features[j * channels..(j + 1) * channels];
-        for (a, &fc) in acc.iter_mut().zip(f) {
-            for i in 0..LANES {
-                a[i] += w[i] * fc;
+        for r in rows_of(s, y0) {
+            let (row, st) = (&rows[r], &mut state[r]);
+            let dy = row.cy - s.v;
+            if st.live == 0 || !row.meets(s, dy) {
+                continue;
             }
-        }
-        if scene.depth {
+            counts.evaluations += row.len as u64;
+            let e = evaluate(s, &row.xs, dy);
+            let mut w = [0.0f32; LANES];
             for i in 0..LANES {
-                depth[i] += w[i] * s.z;
+                let next = st.t[i] * (1.0 - e.alpha[i]);
+                let hit = !st.stopped[i] && e.passes[i];
+                let stop = hit && next < MIN_TRANSMITTANCE as f32;
+                let blend = hit && !stop;
+                st.stopped[i] |= stop;
+                st.live -= usize::from(stop);
+                live -= usize::from(stop);
+                counts.contributions += u64::from(blend);
+                w[i] = if blend { e.alpha[i] * st.t[i] } else { 0.0 };
+                st.t[i] = if blend { next } else { st.t[i] };
+                st.consumed[i] = if blend { next_consumed } else { st.consumed[i] };
+            }
+            for (a, &fc) in acc[r * channels..(r + 1) * channels].iter_mut().zip(f) {
+                for i in 0..LANES {
+                    a[i] += w[i] * fc;
+                }
+            }
+            if scene.depth {
+                for i in 0..LANES {
+                    st.depth[i] += w[i] * s.z;
+                }
             }
         }
     }
-    for i in 0..row.len {
-        let pix = first + i;
-        for (c, a) in acc.iter().enumerate() {
-            out.features[pix * channels + c] = a[i] + t[i] * scene.background[c];
+    for (r, (row, st)) in rows.iter().zip(&state).enumerate() {
+        let first = r * scene.width as usize + (tx * TILE) as usize;
+        for i in 0..row.len {
+            let pix = first + i;
+            for c in 0..channels {
+                out.features[pix * channels + c] =
+                    acc[r * channels + c][i] + st.t[i] * scene.background[c];
+            }
+            out.alpha[pix] = 1.0 - st.t[i];
+            out.depth[pix] = st.depth[i];
+            out.final_t[pix] = st.t[i];
+            out.consumed[pix] = st.consumed[i];
         }
-        out.alpha[pix] = 1.0 - t[i];
-        out.depth[pix] = depth[i];
-        out.final_t[pix] = t[i];
-        out.consumed[pix] = consumed[i];
     }
     counts
 }

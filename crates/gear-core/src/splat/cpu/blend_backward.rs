@@ -11,8 +11,8 @@
 use rayon::prelude::*;
 
 use super::bins::split_lengths;
-use super::blend::{PixelState, Row, Scene, TileList};
-use super::lanes::{evaluate, Lanes, LANES};
+use super::blend::{rows_of, PixelState, Row, Scene, TileList};
+use super::lanes::{evaluate, with_avx2, Lanes, LANES};
 use super::TILE;
 use crate::splat::constants::MAX_ALPHA;
 use crate::splat::types::OutputGradients;
@@ -51,12 +51,19 @@ pub(super) fn blend_backward(scene: &Scene, replay: &Replay) -> Vec<f32> {
     records
 }
 
-fn replay_band(scene: &Scene, replay: &Replay, band: u32, records: &mut [f32]) {
+with_avx2!(
+    /// Replays the tiles of one band of rows into their pair records.
+    fn replay_band(scene: &Scene, replay: &Replay, band: u32, records: &mut [f32]) -> () =
+        replay_band_body
+);
+
+#[inline(always)]
+fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &mut [f32]) {
     let bins = scene.bins;
     let stride = replay.stride(scene.channels);
     let band_start = bins.tile_offsets[(band * bins.tiles_x) as usize] as usize;
     let mut list = TileList::new();
-    let mut rows = RowBuffers::new(scene.channels);
+    let mut buffers = TileBuffers::new(scene.channels);
     for tx in 0..bins.tiles_x {
         let tile = (band * bins.tiles_x + tx) as usize;
         let range = bins.range(tile);
@@ -66,172 +73,226 @@ fn replay_band(scene: &Scene, replay: &Replay, band: u32, records: &mut [f32]) {
         list.gather(bins, tile, scene.features, scene.channels);
         let tile_records =
             &mut records[(range.start - band_start) * stride..(range.end - band_start) * stride];
-        for r in 0..TILE {
-            let y = band * TILE + r;
-            if y >= scene.height {
-                break;
-            }
-            let row = Row::new(tx * TILE, y, scene.width);
-            let first = (y * scene.width + tx * TILE) as usize;
-            replay_row(
-                scene,
-                replay,
-                &list,
-                range.start as u32,
-                &row,
-                first,
-                &mut rows,
-                tile_records,
-            );
-        }
+        let rows = Row::of_tile(tx, band, scene.width, scene.height);
+        replay_tile(
+            scene,
+            replay,
+            &list,
+            range.start as u32,
+            &rows,
+            tx,
+            &mut buffers,
+            tile_records,
+        );
     }
 }
 
-/// Per-channel lanes of a row, kept between rows to avoid allocations.
-struct RowBuffers {
+/// A pixel row's replay state.
+#[derive(Clone, Copy, Default)]
+struct RowState {
+    /// T after the entries replayed so far (T_{i+1} for the next one, i).
+    t: Lanes,
+    final_t: Lanes,
+    consumed: [u32; LANES],
+    /// The row's longest consumed prefix end.
+    last: u32,
+    grad_alpha: Lanes,
+    grad_depth: Lanes,
+    /// Σ_{j>i} w_j z_j.
+    behind_d: Lanes,
+}
+
+/// Per-channel lanes of a tile's rows (row r, channel c at r·C + c), reused between tiles.
+struct TileBuffers {
     grad_f: Vec<Lanes>,
+    /// Σ_{j>i} w_j f_j + T_final · background.
     behind_f: Vec<Lanes>,
-    sums: Vec<f32>,
+    /// The current entry's contributions summed over the rows, per lane (record layout).
+    sums: Vec<Lanes>,
 }
 
-impl RowBuffers {
+impl TileBuffers {
     fn new(channels: usize) -> Self {
-        RowBuffers {
-            grad_f: vec![[0.0; LANES]; channels],
-            behind_f: vec![[0.0; LANES]; channels],
-            sums: vec![0.0; GEOMETRY + channels],
+        let lanes = TILE as usize * channels;
+        TileBuffers {
+            grad_f: vec![[0.0; LANES]; lanes],
+            behind_f: vec![[0.0; LANES]; lanes],
+            sums: vec![[0.0; LANES]; GEOMETRY + channels],
         }
     }
 }
 
+/// The eight lanes summed as a fixed tree (vectorises; the same order every time).
 fn lane_sum(v: &Lanes) -> f32 {
-    v.iter().sum()
+    ((v[0] + v[4]) + (v[2] + v[6])) + ((v[1] + v[5]) + (v[3] + v[7]))
 }
 
-/// Replays one pixel row (image index of its first pixel `first`) back to front, adding its
-/// contributions to the tile's pair records.
-#[allow(clippy::too_many_arguments)]
-fn replay_row(
+/// Loads a row's pixel state and image gradients (lanes past the image edge consumed nothing
+/// and carry zero gradients).
+#[inline(always)]
+fn load_row(
     scene: &Scene,
     replay: &Replay,
-    list: &TileList,
-    start: u32,
     row: &Row,
+    r: usize,
     first: usize,
-    buffers: &mut RowBuffers,
-    records: &mut [f32],
-) {
+    start: u32,
+    buffers: &mut TileBuffers,
+) -> RowState {
     let channels = scene.channels;
-    let stride = replay.stride(channels);
     let grads = replay.grads;
-    // Lanes past the image edge consumed nothing and carry zero gradients.
-    let mut final_t = [0.0f32; LANES];
-    let mut consumed = [start; LANES];
-    let mut grad_alpha = [0.0f32; LANES];
-    let mut grad_depth = [0.0f32; LANES];
+    let mut st = RowState {
+        consumed: [start; LANES],
+        ..RowState::default()
+    };
     for i in 0..row.len {
         let pix = first + i;
-        final_t[i] = replay.state.final_t[pix];
-        consumed[i] = replay.state.consumed[pix];
-        grad_alpha[i] = grads.alpha[pix];
+        st.final_t[i] = replay.state.final_t[pix];
+        st.consumed[i] = replay.state.consumed[pix];
+        st.grad_alpha[i] = grads.alpha[pix];
         if scene.depth {
-            grad_depth[i] = grads.depth.map_or(0.0, |d| d[pix]);
+            st.grad_depth[i] = grads.depth.map_or(0.0, |d| d[pix]);
         }
     }
-    let last = *consumed.iter().max().unwrap();
-    if last == start {
-        return;
-    }
+    st.t = st.final_t;
+    st.last = *st.consumed.iter().max().unwrap();
     for c in 0..channels {
+        let (g, behind) = (
+            &mut buffers.grad_f[r * channels + c],
+            &mut buffers.behind_f[r * channels + c],
+        );
         for i in 0..LANES {
-            buffers.grad_f[c][i] = if i < row.len {
+            g[i] = if i < row.len {
                 grads.features[(first + i) * channels + c]
             } else {
                 0.0
             };
-            buffers.behind_f[c][i] = final_t[i] * scene.background[c];
+            behind[i] = st.final_t[i] * scene.background[c];
         }
     }
-    let mut t = final_t;
-    let mut behind_d = [0.0f32; LANES];
+    st
+}
+
+/// Replays a tile's list back to front for all its rows at once (from the longest consumed
+/// prefix; an entry visits only the rows its ellipse spans and that consumed it), adding each
+/// row's contributions to the entry's record, rows in increasing order.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn replay_tile(
+    scene: &Scene,
+    replay: &Replay,
+    list: &TileList,
+    start: u32,
+    rows: &[Row; TILE as usize],
+    tx: u32,
+    buffers: &mut TileBuffers,
+    records: &mut [f32],
+) {
+    let channels = scene.channels;
+    let stride = replay.stride(channels);
+    let mut state: [RowState; TILE as usize] = std::array::from_fn(|r| {
+        let first = ((rows[r].cy - 0.5) as u32 * scene.width + tx * TILE) as usize;
+        if rows[r].len == 0 {
+            RowState {
+                consumed: [start; LANES],
+                last: start,
+                ..RowState::default()
+            }
+        } else {
+            load_row(scene, replay, &rows[r], r, first, start, buffers)
+        }
+    });
+    let last = state.iter().map(|s| s.last).max().unwrap();
+    let y0 = rows[0].cy;
     let zero = [0.0f32; LANES];
     for k in (start..last).rev() {
         let j = (k - start) as usize;
         let s = &list.splats[j];
-        let dy = row.cy - s.v;
-        if !row.meets(s, dy) {
-            continue;
-        }
-        let e = evaluate(s, &row.xs, dy);
-        let hit: [bool; LANES] = std::array::from_fn(|i| k < consumed[i] && e.passes[i]);
-        if !hit.iter().any(|&h| h) {
-            continue;
-        }
-        let mut keep = zero;
-        let mut t_i = zero;
-        let mut w = zero;
-        let mut grad_a = zero;
-        for i in 0..LANES {
-            keep[i] = 1.0 - e.alpha[i];
-            t_i[i] = t[i] / keep[i];
-            w[i] = e.alpha[i] * t_i[i];
-            // dL/dalpha_i: own contribution T_i·f_i minus 1/(1-alpha_i) times what it hides.
-            grad_a[i] = grad_alpha[i] * final_t[i] / keep[i];
-        }
         let f = &list.features[j * channels..(j + 1) * channels];
-        let sums = &mut buffers.sums;
-        for (c, &fc) in f.iter().enumerate() {
-            let (g, behind) = (&buffers.grad_f[c], &mut buffers.behind_f[c]);
-            let mut contribution = zero;
+        let mut touched = false;
+        for r in rows_of(s, y0) {
+            let (row, st) = (&rows[r], &mut state[r]);
+            if k >= st.last {
+                continue;
+            }
+            let dy = row.cy - s.v;
+            if !row.meets(s, dy) {
+                continue;
+            }
+            let e = evaluate(s, &row.xs, dy);
+            let hit: [bool; LANES] = std::array::from_fn(|i| k < st.consumed[i] && e.passes[i]);
+            if !hit.iter().any(|&h| h) {
+                continue;
+            }
+            if !touched {
+                buffers.sums[..stride].fill(zero);
+                touched = true;
+            }
+            let mut keep = zero;
+            let mut t_i = zero;
+            let mut w = zero;
+            let mut grad_a = zero;
             for i in 0..LANES {
-                grad_a[i] += g[i] * (fc * t_i[i] - behind[i] / keep[i]);
-                contribution[i] = if hit[i] { w[i] * g[i] } else { 0.0 };
-                behind[i] = if hit[i] {
-                    behind[i] + w[i] * fc
-                } else {
-                    behind[i]
-                };
+                keep[i] = 1.0 - e.alpha[i];
+                t_i[i] = st.t[i] / keep[i];
+                w[i] = e.alpha[i] * t_i[i];
+                // dL/dalpha_i: own contribution T_i·f_i minus 1/(1-alpha_i) times what it hides.
+                grad_a[i] = st.grad_alpha[i] * st.final_t[i] / keep[i];
             }
-            if replay.features_grad {
-                sums[GEOMETRY + c] = lane_sum(&contribution);
+            let sums = &mut buffers.sums;
+            for (c, &fc) in f.iter().enumerate() {
+                let g = &buffers.grad_f[r * channels + c];
+                let behind = &mut buffers.behind_f[r * channels + c];
+                for i in 0..LANES {
+                    grad_a[i] += g[i] * (fc * t_i[i] - behind[i] / keep[i]);
+                    behind[i] = if hit[i] {
+                        behind[i] + w[i] * fc
+                    } else {
+                        behind[i]
+                    };
+                }
+                if replay.features_grad {
+                    let sum = &mut sums[GEOMETRY + c];
+                    for i in 0..LANES {
+                        sum[i] += if hit[i] { w[i] * g[i] } else { 0.0 };
+                    }
+                }
             }
-        }
-        sums[6] = 0.0;
-        if scene.depth {
-            let mut contribution = zero;
+            if scene.depth {
+                for i in 0..LANES {
+                    grad_a[i] += st.grad_depth[i] * (s.z * t_i[i] - st.behind_d[i] / keep[i]);
+                    sums[6][i] += if hit[i] { w[i] * st.grad_depth[i] } else { 0.0 };
+                    st.behind_d[i] = if hit[i] {
+                        st.behind_d[i] + w[i] * s.z
+                    } else {
+                        st.behind_d[i]
+                    };
+                }
+            }
+            // The 0.999 clamp passes no gradient to opacity and power.
             for i in 0..LANES {
-                grad_a[i] += grad_depth[i] * (s.z * t_i[i] - behind_d[i] / keep[i]);
-                contribution[i] = if hit[i] { w[i] * grad_depth[i] } else { 0.0 };
-                behind_d[i] = if hit[i] {
-                    behind_d[i] + w[i] * s.z
-                } else {
-                    behind_d[i]
-                };
-            }
-            sums[6] = lane_sum(&contribution);
-        }
-        // The 0.999 clamp passes no gradient to opacity and power.
-        let mut geometry = [zero; 6];
-        for i in 0..LANES {
-            if hit[i] && e.raw[i] <= MAX_ALPHA as f32 {
+                let unclamped = hit[i] && e.raw[i] <= MAX_ALPHA as f32;
                 let (dx, gp) = (e.dx[i], grad_a[i] * e.alpha[i]);
-                geometry[0][i] = -0.5 * dx * dx * gp;
-                geometry[1][i] = -dx * dy * gp;
-                geometry[2][i] = -0.5 * dy * dy * gp;
-                geometry[3][i] = (s.a * dx + s.b * dy) * gp;
-                geometry[4][i] = (s.b * dx + s.c * dy) * gp;
-                geometry[5][i] = grad_a[i] * e.gauss[i];
+                let terms = [
+                    -0.5 * dx * dx * gp,
+                    -dx * dy * gp,
+                    -0.5 * dy * dy * gp,
+                    (s.a * dx + s.b * dy) * gp,
+                    (s.b * dx + s.c * dy) * gp,
+                    grad_a[i] * e.gauss[i],
+                ];
+                for (sum, term) in sums.iter_mut().zip(terms) {
+                    sum[i] += if unclamped { term } else { 0.0 };
+                }
+                st.t[i] = if hit[i] { t_i[i] } else { st.t[i] };
             }
-            t[i] = if hit[i] { t_i[i] } else { t[i] };
         }
-        for (q, g) in geometry.iter().enumerate() {
-            sums[q] = lane_sum(g);
-        }
-        for (r, v) in records[j * stride..(j + 1) * stride]
-            .iter_mut()
-            .zip(&sums[..stride])
-        {
-            *r += v;
+        // Each pair's record is written once, its rows summed lane-wise in row order first.
+        if touched {
+            let record = &mut records[j * stride..(j + 1) * stride];
+            for (out, v) in record.iter_mut().zip(&buffers.sums) {
+                *out = lane_sum(v);
+            }
         }
     }
 }

@@ -8,6 +8,31 @@
 use super::bins::Splat;
 use crate::splat::constants::{MAX_ALPHA, MIN_ALPHA};
 
+/// Defines `fn $name(args) -> ret` calling `$body` (an `#[inline(always)]` function) compiled
+/// for AVX2 where the CPU has it, else as compiled for the baseline target: eight-lane rows
+/// become single instructions and floor/ceil inline. Per-lane IEEE results are the same either
+/// way (no fused multiply-adds are formed), so outputs do not depend on the path taken.
+macro_rules! with_avx2 {
+    ($(#[$doc:meta])* fn $name:ident($($arg:ident: $ty:ty),*) -> $ret:ty = $body:path) => {
+        $(#[$doc])*
+        fn $name($($arg: $ty),*) -> $ret {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2")]
+                fn wide($($arg: $ty),*) -> $ret {
+                    $body($($arg),*)
+                }
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU supports AVX2.
+                    return unsafe { wide($($arg),*) };
+                }
+            }
+            $body($($arg),*)
+        }
+    };
+}
+pub(super) use with_avx2;
+
 pub(super) const LANES: usize = 8;
 pub(super) type Lanes = [f32; LANES];
 

@@ -96,9 +96,7 @@ pub fn forward_in(
     gaussians.validate()?;
     options.validate(gaussians.channels)?;
     pool.install(|| {
-        let t0 = std::time::Instant::now();
         let bins = bin(gaussians, camera);
-        let t1 = std::time::Instant::now();
         let scene = Scene {
             bins: &bins,
             features: gaussians.features,
@@ -109,7 +107,6 @@ pub fn forward_in(
             depth: options.depth,
         };
         let (features, alpha, depth, pixels, counts) = blend(&scene);
-        if std::env::var("GEAR_PROFILE").is_ok() { eprintln!("bin {:?} blend {:?} {:?} pairs {}", t1 - t0, t1.elapsed(), counts, bins.pairs()); }
         let n = gaussians.len();
         let word = 4u64;
         let state_bytes = word
@@ -193,6 +190,23 @@ pub fn backward_in(
     })
 }
 
+/// How many Gaussians ahead [`reduce`] prefetches records.
+const PREFETCH_AHEAD: usize = 12;
+
+/// Hints the CPU to load the cache line of `value`.
+#[inline(always)]
+fn prefetch(value: &f32) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch has no effect on memory; the pointer is valid anyway.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+            (value as *const f32).cast(),
+        );
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = value;
+}
+
 /// Sums each Gaussian's pair records in tile order and chains them through the projection.
 fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGradients<f32> {
     let gaussians = state.gaussians.view();
@@ -216,6 +230,14 @@ fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGra
             let mut sums = vec![0.0f32; stride];
             for (k, out) in geometry.iter_mut().enumerate() {
                 let g = ci * chunk + k;
+                // Records lie in tile order, so a Gaussian's are scattered: ask for those of a
+                // Gaussian a few ahead while this one is summed.
+                if let Some(&slot) = (g + PREFETCH_AHEAD < n)
+                    .then(|| bins.slots(g + PREFETCH_AHEAD).first())
+                    .flatten()
+                {
+                    prefetch(&records[slot as usize * stride]);
+                }
                 let slots = bins.slots(g);
                 if slots.is_empty() {
                     continue;

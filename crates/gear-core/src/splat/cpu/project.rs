@@ -106,6 +106,7 @@ fn rotation(q: Vec4) -> Mat3 {
 }
 
 /// Gaussian `i` projected by `view`, or None when the contract culls it.
+#[inline(always)]
 pub(super) fn project(g: &Gaussians, i: usize, view: &View) -> Option<Projection> {
     let m = Vec3::from(g.means[i]);
     let q = Vec4::from(g.quats[i]);
