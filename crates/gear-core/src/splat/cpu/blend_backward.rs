@@ -228,23 +228,24 @@ fn replay_tile(
                 buffers.sums[..stride].fill(zero);
                 touched = true;
             }
-            let mut keep = zero;
+            let mut inv_keep = zero;
             let mut t_i = zero;
             let mut w = zero;
             let mut grad_a = zero;
             for i in 0..LANES {
-                keep[i] = 1.0 - e.alpha[i];
-                t_i[i] = st.t[i] / keep[i];
+                // One division per lane; the terms below multiply by its reciprocal.
+                inv_keep[i] = 1.0 / (1.0 - e.alpha[i]);
+                t_i[i] = st.t[i] * inv_keep[i];
                 w[i] = e.alpha[i] * t_i[i];
                 // dL/dalpha_i: own contribution T_i·f_i minus 1/(1-alpha_i) times what it hides.
-                grad_a[i] = st.grad_alpha[i] * st.final_t[i] / keep[i];
+                grad_a[i] = st.grad_alpha[i] * st.final_t[i] * inv_keep[i];
             }
             let sums = &mut buffers.sums;
             for (c, &fc) in f.iter().enumerate() {
                 let g = &buffers.grad_f[r * channels + c];
                 let behind = &mut buffers.behind_f[r * channels + c];
                 for i in 0..LANES {
-                    grad_a[i] += g[i] * (fc * t_i[i] - behind[i] / keep[i]);
+                    grad_a[i] += g[i] * (fc * t_i[i] - behind[i] * inv_keep[i]);
                     behind[i] = if hit[i] {
                         behind[i] + w[i] * fc
                     } else {
@@ -260,7 +261,7 @@ fn replay_tile(
             }
             if scene.depth {
                 for i in 0..LANES {
-                    grad_a[i] += st.grad_depth[i] * (s.z * t_i[i] - st.behind_d[i] / keep[i]);
+                    grad_a[i] += st.grad_depth[i] * (s.z * t_i[i] - st.behind_d[i] * inv_keep[i]);
                     sums[6][i] += if hit[i] { w[i] * st.grad_depth[i] } else { 0.0 };
                     st.behind_d[i] = if hit[i] {
                         st.behind_d[i] + w[i] * s.z
