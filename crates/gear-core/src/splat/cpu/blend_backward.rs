@@ -270,21 +270,26 @@ fn replay_tile(
                     };
                 }
             }
-            // The 0.999 clamp passes no gradient to opacity and power.
-            for i in 0..LANES {
-                let unclamped = hit[i] && e.raw[i] <= MAX_ALPHA as f32;
-                let (dx, gp) = (e.dx[i], grad_a[i] * e.alpha[i]);
-                let terms = [
-                    -0.5 * dx * dx * gp,
-                    -dx * dy * gp,
-                    -0.5 * dy * dy * gp,
-                    (s.a * dx + s.b * dy) * gp,
-                    (s.b * dx + s.c * dy) * gp,
-                    grad_a[i] * e.gauss[i],
-                ];
-                for (sum, term) in sums.iter_mut().zip(terms) {
-                    sum[i] += if unclamped { term } else { 0.0 };
+            // The 0.999 clamp passes no gradient to opacity and power. Term by term over the
+            // lanes (not lane by lane), so that each sum is one vector add.
+            let unclamped: [bool; LANES] =
+                std::array::from_fn(|i| hit[i] && e.raw[i] <= MAX_ALPHA as f32);
+            let gp: Lanes = std::array::from_fn(|i| grad_a[i] * e.alpha[i]);
+            let dx = &e.dx;
+            let terms: [Lanes; 6] = [
+                std::array::from_fn(|i| -0.5 * dx[i] * dx[i] * gp[i]),
+                std::array::from_fn(|i| -dx[i] * dy * gp[i]),
+                std::array::from_fn(|i| -0.5 * dy * dy * gp[i]),
+                std::array::from_fn(|i| (s.a * dx[i] + s.b * dy) * gp[i]),
+                std::array::from_fn(|i| (s.b * dx[i] + s.c * dy) * gp[i]),
+                std::array::from_fn(|i| grad_a[i] * e.gauss[i]),
+            ];
+            for (sum, term) in sums.iter_mut().zip(&terms) {
+                for i in 0..LANES {
+                    sum[i] += if unclamped[i] { term[i] } else { 0.0 };
                 }
+            }
+            for i in 0..LANES {
                 st.t[i] = if hit[i] { t_i[i] } else { st.t[i] };
             }
         }
