@@ -1,6 +1,7 @@
 """gear.splat against the pure-torch renderer (gear.splat_reference) and the f64 Rust reference.
 
-Tolerances: the GPU renders in float32; images within 1e-4 (max abs) of the float64 references
+Tests that go through gear.splat.rasterize run on both executors (backend "cpu" and "wgpu").
+Tolerances: both render in float32; images within 1e-4 (max abs) of the float64 references
 (but for the rare values where float32 and float64 fall on either side of the 1/255 alpha skip,
 see splat_scenes.assert_images_close), gradients within 1e-3 relative L2 per input array. The
 two float64 references (torch and Rust) agree to 1e-9. Finite differences check the torch
@@ -136,13 +137,14 @@ def gradients(scene: Scene, render, seed: int) -> tuple[splat.RenderOutput, list
     return out, [a.grad for a in scene.arrays()]
 
 
+@pytest.mark.parametrize("backend", splat.BACKENDS)
 @pytest.mark.parametrize(SCENE_ARGS, SCENES)
-def test_gpu_matches_dense_reference(n, channels, depth, width, height, seed, spread):
+def test_gpu_matches_dense_reference(n, channels, depth, width, height, seed, spread, backend):
     scene = scene_for(n, channels, seed, spread)
     cam = as_float32(camera(width, height))
 
     def gpu(*arrays: torch.Tensor) -> splat.RenderOutput:
-        return splat.rasterize(*arrays, cam, background(channels), depth)
+        return splat.rasterize(*arrays, cam, background(channels), depth, backend=backend)
 
     def dense(*arrays: torch.Tensor) -> splat.RenderOutput:
         return rasterize_dense(*arrays, cam, background(channels).double(), depth)
@@ -211,7 +213,8 @@ def test_cas_accumulation_matches_atomic_accumulation():
         assert rel <= 1e-5, f"d{name}: CAS vs atomic relative L2 {rel:.2e}"
 
 
-def test_any_memory_layout_is_accepted():
+@pytest.mark.parametrize("backend", splat.BACKENDS)
+def test_any_memory_layout_is_accepted(backend):
     # Transposed views and a Fortran-order camera matrix render like contiguous inputs.
     scene = random_scene(30, 4, seed=8)
     cam = camera(20, 16)
@@ -222,17 +225,18 @@ def test_any_memory_layout_is_accepted():
     arrays[0] = arrays[0].T.contiguous().T
     arrays[4] = arrays[4].T.contiguous().T
     assert not arrays[0].is_contiguous()
-    got = splat.rasterize(*arrays, fortran_cam, depth=True)
-    want = splat.rasterize(*scene.arrays(), cam, depth=True)
+    got = splat.rasterize(*arrays, fortran_cam, depth=True, backend=backend)
+    want = splat.rasterize(*scene.arrays(), cam, depth=True, backend=backend)
     for a, b in zip(images(got), images(want), strict=True):
         assert torch.equal(a, b)
 
 
-def test_gradients_only_for_inputs_that_require_them():
+@pytest.mark.parametrize("backend", splat.BACKENDS)
+def test_gradients_only_for_inputs_that_require_them(backend):
     scene = random_scene(20, 3, seed=5)
     scene.features.requires_grad_(True)
     scene.log_scales.requires_grad_(True)
-    out = splat.rasterize(*scene.arrays(), camera(16, 16))
+    out = splat.rasterize(*scene.arrays(), camera(16, 16), backend=backend)
     assert out.depth is None
     (out.features.sum() + out.alpha.sum()).backward()
     assert scene.means.grad is None and scene.quats.grad is None
@@ -241,8 +245,9 @@ def test_gradients_only_for_inputs_that_require_them():
 
 
 
+@pytest.mark.parametrize("backend", splat.BACKENDS)
 @pytest.mark.parametrize("channels", [1, 5])
-def test_detached_features_leave_geometry_gradients_unchanged(channels):
+def test_detached_features_leave_geometry_gradients_unchanged(channels, backend):
     # Detached features skip their gradients in the kernel; the geometry's must not change
     # (beyond the float32 rounding of atomics adding in another order).
     scene = random_scene(300, channels, seed=23)
@@ -250,7 +255,8 @@ def test_detached_features_leave_geometry_gradients_unchanged(channels):
     geometry = [a.requires_grad_(True) for a in scene.arrays()[:4]]
     grads = []
     for features in (scene.features.clone().requires_grad_(True), scene.features):
-        out = splat.rasterize(*geometry, features, cam, background(channels), depth=True)
+        out = splat.rasterize(*geometry, features, cam, background(channels), depth=True,
+                              backend=backend)
         loss = weighted_loss(out, loss_weights(out, seed=5))
         grads.append(torch.autograd.grad(loss, geometry))
     for name, with_features, detached in zip(ARRAYS, *grads, strict=False):
@@ -325,7 +331,7 @@ from splat_scenes import camera, random_scene
 info = _core.adapter_info()
 scene = random_scene(400, 3, seed=21).to(torch.float32, requires_grad=True)
 cam = camera(40, 32)
-out = splat.rasterize(*scene.arrays(), cam, torch.tensor([0.1, 0.3, 0.6]), True)
+out = splat.rasterize(*scene.arrays(), cam, torch.tensor([0.1, 0.3, 0.6]), True, backend="wgpu")
 (out.features.sum() + out.depth.sum()).backward()
 np.savez(sys.argv[1], subgroups=info["subgroups"], atomics=info["float32_atomics"],
          image=out.features.detach().numpy(), depth=out.depth.detach().numpy(),

@@ -1,4 +1,5 @@
-"""gear.splat.rasterize on hard inputs: outputs and gradients finite, and what they should be.
+"""gear.splat.rasterize (both executors) on hard inputs: outputs and gradients finite, and what
+they should be.
 
 Culled Gaussians (behind the camera, at the near plane, non-finite, opacity below 1/255,
 off-screen) must change nothing and get exactly zero gradient.
@@ -42,10 +43,17 @@ def gaussians(rows: list[tuple], channels: int = 3) -> Scene:
     )
 
 
+
+@pytest.fixture(autouse=True, params=splat.BACKENDS)
+def backend(request, monkeypatch) -> str:
+    """Every test here runs on both executors (gear.splat.rasterize follows GEAR_BACKEND)."""
+    monkeypatch.setenv("GEAR_BACKEND", request.param)
+    return request.param
+
 def render(
     scene: Scene, cam: splat.Camera, dense: bool = False
 ) -> tuple[splat.RenderOutput, list[torch.Tensor]]:
-    """GPU render with depth (or, with `dense`, the float64 pure-torch reference), then the
+    """Render with depth (or, with `dense`, the float64 pure-torch reference), then the
     gradients of a fixed weighted sum of the three images; asserts that all are finite."""
     dtype = torch.float64 if dense else torch.float32
     scene = scene.to(dtype, requires_grad=True)

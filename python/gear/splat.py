@@ -1,4 +1,5 @@
-"""Differentiable Gaussian rasterization: a torch.autograd.Function over the wgpu kernels.
+"""Differentiable Gaussian rasterization: a torch.autograd.Function over two executors of one
+contract, the wgpu kernels and a native multi-threaded CPU executor.
 
     out = rasterize(means, quats, log_scales, opacity_logits, features, camera)
     out.features  [H,W,C] = sum_i w_i f_i + T_final * background
@@ -6,7 +7,12 @@
     out.depth     [H,W]   = sum_i w_i z_i (camera-space z), only with depth=True
 with w_i = alpha_i T_i, opacity = sigmoid(opacity_logits), scale = exp(log_scales) and
 quaternions (w, x, y, z), unnormalised. The maths is the rasterizer contract
-(/work/notes/raster_contract.md); gear.splat_reference is the same in pure torch.
+(docs/raster-contract.md); gear.splat_reference is the same in pure torch.
+
+Executor: `backend="cpu"` or `"wgpu"`; None follows the environment variable GEAR_BACKEND
+(`auto`, `cpu` or `wgpu`; default `auto`: the CPU executor when the wgpu adapter is a software
+one (lavapipe, SwiftShader, WARP) or none can be created, else wgpu). The CPU executor uses
+GEAR_THREADS threads (default: every core); its gradients are bit-identical for any count.
 
 Inputs are float32 CPU tensors; wrong shapes or dtypes raise an error naming the argument.
 Non-finite Gaussian values are not errors: such Gaussians are culled (zero output, zero grad).
@@ -14,6 +20,8 @@ Non-finite Gaussian values are not errors: such Gaussians are culled (zero outpu
 
 from __future__ import annotations
 
+import functools
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,9 +32,39 @@ from torch import Tensor
 from gear import _core
 from gear.camera import Camera
 
-__all__ = ["Camera", "RenderOutput", "rasterize"]
+__all__ = ["BACKENDS", "Camera", "RenderOutput", "auto_backend", "rasterize", "resolve_backend"]
 
 MAX_CHANNELS = 64
+BACKENDS = ("cpu", "wgpu")
+_ENVIRONMENT_CHOICES = ("auto", *BACKENDS)
+
+
+@functools.cache
+def auto_backend() -> tuple[str, str]:
+    """The executor `auto` picks, and why (one line)."""
+    try:
+        info = _core.adapter_info()
+    except _core.GpuUnavailableError as error:
+        reason = str(error).splitlines()[0] if str(error) else "none found"
+        return "cpu", f"no wgpu adapter can be created ({reason})"
+    if info["device_type"] == "Cpu":
+        return "cpu", f"the wgpu adapter {info['name']} is a software one"
+    return "wgpu", f"the wgpu adapter {info['name']} is a GPU ({info['device_type']})"
+
+
+def resolve_backend(backend: str | None = None) -> str:
+    """`backend` ("cpu" or "wgpu"), or for None what GEAR_BACKEND asks for."""
+    if backend is None:
+        value = os.environ.get("GEAR_BACKEND", "").strip().lower() or "auto"
+        if value not in _ENVIRONMENT_CHOICES:
+            raise ValueError(
+                f"GEAR_BACKEND must be one of {', '.join(_ENVIRONMENT_CHOICES)}; got "
+                f"{os.environ['GEAR_BACKEND']!r}"
+            )
+        return auto_backend()[0] if value == "auto" else value
+    if backend not in BACKENDS:
+        raise ValueError(f"'backend' must be None, 'cpu' or 'wgpu'; got {backend!r}")
+    return backend
 
 
 @dataclass
@@ -98,8 +136,10 @@ class _Rasterize(torch.autograd.Function):
         camera: Camera,
         background: Tensor,
         depth: bool,
+        backend: str,
     ) -> tuple[Tensor, ...]:
-        image, alpha, depth_image, state = _core.rasterize_forward(
+        render = _core.rasterize_forward_cpu if backend == "cpu" else _core.rasterize_forward
+        image, alpha, depth_image, state = render(
             *(_numpy(t) for t in (means, quats, log_scales, opacity_logits, features)),
             np.ascontiguousarray(camera.world_to_cam, dtype=np.float32),
             (camera.fx, camera.fy, camera.cx, camera.cy),
@@ -129,7 +169,7 @@ class _Rasterize(torch.autograd.Function):
         input_grads = tuple(
             torch.from_numpy(g) if need else None for g, need in zip(arrays, wanted, strict=True)
         )
-        return (*input_grads, None, None, None)
+        return (*input_grads, None, None, None, None)
 
 
 def rasterize(
@@ -141,14 +181,16 @@ def rasterize(
     camera: Camera,
     background: Tensor | None = None,
     depth: bool = False,
+    backend: str | None = None,
 ) -> RenderOutput:
-    """Renders N Gaussians seen by `camera` on the GPU (see the module docstring).
+    """Renders N Gaussians seen by `camera` (see the module docstring).
 
     means [N,3], quats [N,4] (w, x, y, z), log_scales [N,3], opacity_logits [N], features
     [N,C] (1 <= C <= 64), background [C] (None: zeros): float32 CPU tensors. Gradients flow to
-    the five Gaussian arrays that require them.
+    the five Gaussian arrays that require them. `backend`: "cpu", "wgpu" or None (GEAR_BACKEND).
     """
     arrays = (means, quats, log_scales, opacity_logits, features)
     background = _check_inputs(arrays, camera, background)
-    outputs = _Rasterize.apply(*arrays, camera, background, bool(depth))
+    executor = resolve_backend(backend)
+    outputs = _Rasterize.apply(*arrays, camera, background, bool(depth), executor)
     return RenderOutput(outputs[0], outputs[1], outputs[2] if depth else None)

@@ -2,7 +2,7 @@
 
 Every Gaussian is evaluated against every pixel (`rasterize_dense`), or against the pixels of
 each block it may touch (`rasterize_tiled`, for scenes too big for a dense [pixels, N] table).
-The maths is the one of /work/notes/raster_contract.md, step by step: culling, EWA projection
+The maths is the one of docs/raster-contract.md, step by step: culling, EWA projection
 with the clamped Jacobian and the 0.3 low-pass, the opacity-aware tile rectangle, alpha clamped
 to 0.999, the 1/255 skip and the transmittance cut-off. Works in any float dtype (float64 for
 gradient checks); the hard cut-offs are piecewise constant, so autograd treats them as the

@@ -1,5 +1,5 @@
 //! Rasterizer wall time: forward (render + image readback) and backward (gradients + readback)
-//! on random scenes like `python -m gear bench raster` (a unit ball of Gaussians covering its
+//! of the wgpu kernels and of the native CPU executor, on random scenes like `python -m gear bench raster` (a unit ball of Gaussians covering its
 //! silhouette a few times, depth on), medians of `GEAR_BENCH_REPEATS` (default 7) runs after
 //! a warm-up that compiles the pipelines and fills the buffer pool.
 //!
@@ -7,12 +7,13 @@
 //! Linux): on a machine shared with other jobs wall time swings with their load, CPU time
 //! much less.
 //!
-//! `cargo bench -p gear-core --bench raster [-- N@SIZE ...]`, e.g. `-- 20000@128`.
+//! `cargo bench -p gear-core --bench raster [-- N@SIZE ...]`, e.g. `-- 20000@128`;
+//! `GEAR_BENCH_EXEC=cpu` (or `wgpu`) times one executor only.
 
 use std::time::Instant;
 
 use gear_core::splat::{
-    backward, forward, Accumulation, Camera, OutputGradients, OwnedGaussians, RenderOptions,
+    backward, cpu, forward, Accumulation, Camera, OutputGradients, OwnedGaussians, RenderOptions,
 };
 
 const CHANNELS: usize = 3;
@@ -93,11 +94,18 @@ struct Timing {
     /// Mean process CPU milliseconds per call.
     forward_cpu: Option<f64>,
     backward_cpu: Option<f64>,
-    pairs: u32,
+    pairs: u64,
+}
+
+/// Which executor runs the rasterizer.
+#[derive(Debug, Clone, Copy)]
+enum Backend {
+    Wgpu,
+    Cpu,
 }
 
 /// Times `repeats` runs (after one warm-up run).
-fn time(n: usize, size: u32, repeats: usize) -> Timing {
+fn time(backend: Backend, n: usize, size: u32, repeats: usize) -> Timing {
     let scene = ball(n, 0);
     let cam = camera(size);
     let options = RenderOptions {
@@ -117,17 +125,28 @@ fn time(n: usize, size: u32, repeats: usize) -> Timing {
     };
     let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
     let (mut fwd_cpu, mut bwd_cpu) = (Some(0.0), Some(0.0));
-    let mut pairs = 0;
+    let mut pairs = 0u64;
     for run in 0..=repeats {
         let cpu0 = cpu_ms();
         let start = Instant::now();
-        let (_, state) = forward(&scene.view(), &cam, &options).expect("forward");
-        let middle = Instant::now();
-        let cpu1 = cpu_ms();
-        backward(&state, &grads, Accumulation::Auto, true).expect("backward");
+        let (middle, cpu1) = match backend {
+            Backend::Wgpu => {
+                let (_, state) = forward(&scene.view(), &cam, &options).expect("forward");
+                let (middle, cpu1) = (Instant::now(), cpu_ms());
+                backward(&state, &grads, Accumulation::Auto, true).expect("backward");
+                pairs = state.pairs as u64;
+                (middle, cpu1)
+            }
+            Backend::Cpu => {
+                let (_, state) = cpu::forward(&scene.view(), &cam, &options).expect("forward");
+                let (middle, cpu1) = (Instant::now(), cpu_ms());
+                cpu::backward(&state, &grads, true).expect("backward");
+                pairs = state.stats.pairs;
+                (middle, cpu1)
+            }
+        };
         let end = Instant::now();
         let cpu2 = cpu_ms();
-        pairs = state.pairs;
         if run > 0 {
             fwd.push(1e3 * (middle - start).as_secs_f64());
             bwd.push(1e3 * (end - middle).as_secs_f64());
@@ -169,18 +188,27 @@ fn main() {
     }
     println!("{repeats} runs, C={CHANNELS}, depth on; wall: median ms, cpu: mean ms per call");
     println!(
-        "{:>8} {:>9} {:>9} | {:>8} {:>8} | {:>8} {:>8}",
-        "N", "image", "pairs", "fwd wall", "bwd wall", "fwd cpu", "bwd cpu"
+        "{:>8} {:>9} {:>5} {:>9} | {:>8} {:>8} | {:>8} {:>8}",
+        "N", "image", "exec", "pairs", "fwd wall", "bwd wall", "fwd cpu", "bwd cpu"
     );
+    // GEAR_BENCH_EXEC=cpu or wgpu times one executor only (e.g. under a profiler).
+    let only = std::env::var("GEAR_BENCH_EXEC").unwrap_or_default();
+    let backends: Vec<Backend> = [Backend::Wgpu, Backend::Cpu]
+        .into_iter()
+        .filter(|b| only.is_empty() || format!("{b:?}").eq_ignore_ascii_case(&only))
+        .collect();
     for (n, size) in cases {
-        let t = time(n, size, repeats);
-        println!(
-            "{n:>8} {size:>4}x{size:<4} {:>9} | {:>8.1} {:>8.1} | {:>8} {:>8}",
-            t.pairs,
-            t.forward,
-            t.backward,
-            show(t.forward_cpu),
-            show(t.backward_cpu)
-        );
+        for &backend in &backends {
+            let t = time(backend, n, size, repeats);
+            let name = format!("{backend:?}").to_lowercase();
+            println!(
+                "{n:>8} {size:>4}x{size:<4} {name:>5} {:>9} | {:>8.1} {:>8.1} | {:>8} {:>8}",
+                t.pairs,
+                t.forward,
+                t.backward,
+                show(t.forward_cpu),
+                show(t.backward_cpu)
+            );
+        }
     }
 }

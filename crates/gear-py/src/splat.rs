@@ -1,15 +1,17 @@
-//! Bindings of the rasterizer (gear_core::splat): the GPU forward/backward pair and the f64
-//! CPU reference pair, with the signatures of the rasterizer contract. Forward returns the
-//! images plus an opaque `RasterState` that backward consumes; the GPU state keeps the device
-//! buffers backward replays, the reference state keeps copies of the inputs.
+//! Bindings of the rasterizer (gear_core::splat): the GPU (wgpu) and native CPU executors'
+//! forward passes, their shared backward, and the f64 CPU reference pair, with the signatures
+//! of the rasterizer contract. Forward returns the images plus an opaque `RasterState` that
+//! backward consumes; the GPU state keeps the device buffers backward replays, the CPU state
+//! the tile lists and pixel state, the reference state copies of the inputs.
 
 use gear_core::splat::{
-    self, reference, Accumulation, Camera, ForwardState, GaussianGradients, Gaussians,
+    self, cpu, reference, Accumulation, Camera, ForwardState, GaussianGradients, Gaussians,
     OutputGradients, OwnedGaussians, RenderOptions, RenderOutput,
 };
 use numpy::{Element, PyArray1, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
+use pyo3::types::PyDict;
 
 use crate::args::{array, Dim, Dtype};
 use crate::errors::guarded;
@@ -23,6 +25,7 @@ struct ReferenceInputs {
 
 enum StateKind {
     Gpu(Box<ForwardState>),
+    Cpu(Box<cpu::CpuState>),
     Reference(Box<ReferenceInputs>),
 }
 
@@ -43,12 +46,34 @@ impl RasterState {
     fn __repr__(&self) -> String {
         let kind = match self.kind {
             StateKind::Gpu(_) => "gpu",
+            StateKind::Cpu(_) => "cpu",
             StateKind::Reference(_) => "reference",
         };
         format!(
             "RasterState({kind}, {}x{}, channels={}, depth={})",
             self.width, self.height, self.channels, self.depth
         )
+    }
+
+    /// What the forward pass did: `pairs` ((tile, Gaussian) pairs) for the GPU and CPU
+    /// executors; for the CPU also `evaluations` and `contributions` (Gaussian-pixel
+    /// evaluations of the blend and those blended), `state_bytes` (held by this state) and
+    /// `backward_bytes` (allocated by a backward with feature gradients). Empty for the reference.
+    fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let d = PyDict::new(py);
+        match &self.kind {
+            StateKind::Gpu(state) => d.set_item("pairs", state.pairs)?,
+            StateKind::Cpu(state) => {
+                let s = state.stats;
+                d.set_item("pairs", s.pairs)?;
+                d.set_item("evaluations", s.evaluations)?;
+                d.set_item("contributions", s.contributions)?;
+                d.set_item("state_bytes", s.state_bytes)?;
+                d.set_item("backward_bytes", cpu::backward_bytes(state, true))?;
+            }
+            StateKind::Reference(_) => {}
+        }
+        Ok(d)
     }
 }
 
@@ -275,6 +300,15 @@ fn render_gpu(
     Ok((out, StateKind::Gpu(Box::new(state))))
 }
 
+fn render_cpu(
+    gaussians: Gaussians<'_>,
+    camera: &Camera,
+    options: &RenderOptions,
+) -> gear_core::Result<(RenderOutput<f32>, StateKind)> {
+    let (out, state) = cpu::forward(&gaussians, camera, options)?;
+    Ok((out, StateKind::Cpu(Box::new(state))))
+}
+
 /// The reference render, keeping copies of the inputs for its backward.
 fn render_reference(
     gaussians: Gaussians<'_>,
@@ -294,6 +328,13 @@ forward_binding!(
     /// Renders on the GPU. `force_cas` makes the later backward accumulate with the
     /// compare-and-swap loop even where float32 atomics exist (to test that path).
     rasterize_forward => render_gpu
+);
+
+forward_binding!(
+    /// Renders with the native CPU executor (threads: `GEAR_THREADS`, default every core);
+    /// same arguments as `rasterize_forward` (`force_cas` is accepted and ignored). Its
+    /// backward is `rasterize_backward` too.
+    rasterize_forward_cpu => render_cpu
 );
 
 forward_binding!(
@@ -349,9 +390,9 @@ fn wrong_state(expected: &str) -> PyErr {
     ))
 }
 
-/// Gradients of the GPU render that produced `state` (float32 arrays shaped like the inputs).
-/// With `features_grad=False` the feature gradients are skipped (returned as None), which
-/// is cheaper and leaves the other gradients unchanged.
+/// Gradients of the GPU or CPU render that produced `state` (float32 arrays shaped like the
+/// inputs). With `features_grad=False` the feature gradients are skipped (returned as None),
+/// which is cheaper and leaves the other gradients unchanged.
 #[pyfunction]
 #[pyo3(signature = (state, grad_features, grad_alpha, grad_depth=None, features_grad=true))]
 fn rasterize_backward<'py>(
@@ -363,9 +404,6 @@ fn rasterize_backward<'py>(
     features_grad: bool,
 ) -> PyResult<Gradients<'py>> {
     let state = state.get();
-    let StateKind::Gpu(forward) = &state.kind else {
-        return Err(wrong_state("rasterize_forward"));
-    };
     let grads = image_grads::<f32>(state, grad_features, grad_alpha, grad_depth)?;
     let view = grads.view()?;
     let accumulation = if state.force_cas {
@@ -373,9 +411,15 @@ fn rasterize_backward<'py>(
     } else {
         Accumulation::Auto
     };
-    let g = guarded(py, || {
-        splat::backward(forward, &view, accumulation, features_grad)
-    })?;
+    let g = match &state.kind {
+        StateKind::Gpu(forward) => guarded(py, || {
+            splat::backward(forward, &view, accumulation, features_grad)
+        })?,
+        StateKind::Cpu(forward) => guarded(py, || cpu::backward(forward, &view, features_grad))?,
+        StateKind::Reference(_) => {
+            return Err(wrong_state("rasterize_forward or rasterize_forward_cpu"))
+        }
+    };
     gradients(py, g, state.channels, features_grad)
 }
 
@@ -429,9 +473,18 @@ fn reference_backward<'py>(
     gradients(py, g, state.channels, true)
 }
 
+/// Threads of the CPU executor's pool: `GEAR_THREADS`, default every core (a bad value is an
+/// error naming it).
+#[pyfunction]
+fn cpu_threads(py: Python<'_>) -> PyResult<usize> {
+    guarded(py, cpu::thread_count)
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<RasterState>()?;
     m.add_function(wrap_pyfunction!(rasterize_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(rasterize_forward_cpu, m)?)?;
+    m.add_function(wrap_pyfunction!(cpu_threads, m)?)?;
     m.add_function(wrap_pyfunction!(rasterize_backward, m)?)?;
     m.add_function(wrap_pyfunction!(reference_forward, m)?)?;
     m.add_function(wrap_pyfunction!(reference_backward, m)?)?;

@@ -1,10 +1,17 @@
-"""Rasterizer speed: GPU forward/backward vs the pure-torch renderer, measured in one run.
+"""Rasterizer speed: the CPU executor against the wgpu kernels, measured side by side in one run.
 
-For every scene size, image size and channel count (depth on) it times gear.splat.rasterize
-(forward) and the backward of a weighted sum of its images, then the same for the pure-torch
-renderer of gear.splat_reference (dense where its [pixels, N] tables fit in memory, else the
-tiled version), and prints the speed-ups. Times are medians of `--repeats` runs after a warm-up
-(pipeline compilation and buffer allocation are excluded).
+For every case (N Gaussians at an S x S image) and channel count (depth on) it times
+gear.splat.rasterize forward and the backward of a weighted sum of its images on each executor
+(backend "wgpu" and "cpu"), and prints the ratio wgpu / cpu of forward + backward. For the CPU
+executor it also prints the Gaussian-pixel evaluations per pixel of its forward blend, the
+fraction of them that were blended (useful), and its peak memory (forward state + backward
+buffers); for wgpu, the evaluations per pixel its blend may make at most (every pixel of a tile
+evaluates the tile's list up to its early exit). Optionally the pure-torch renderer of
+gear.splat_reference too. Times are medians of `--repeats` runs after a warm-up (pipeline
+compilation, buffer allocation and thread start-up are excluded).
+
+The default scenes are random splats sized like training's: a unit ball of Gaussians covering
+its silhouette a few times, sub-pixel at 90k and 128 x 128.
 """
 
 from __future__ import annotations
@@ -17,25 +24,37 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from gear import splat, splat_reference
+from gear import _core, splat, splat_reference
 from gear.camera import Camera
 from gear.device import adapter_info
 
 # Dense torch rendering keeps roughly this many [pixels, N] float32 tables alive at once.
 _DENSE_TABLES = 16
 _DENSE_BUDGET_BYTES = 2 << 30
+# Pixels per tile of the wgpu blend (GPU_TILE² in gear-core's kernels).
+_GPU_TILE_PIXELS = 64
+
+
+def case(text: str) -> tuple[int, int]:
+    """N@SIZE, e.g. 90000@128."""
+    try:
+        n, size = text.split("@")
+        return int(n), int(size)
+    except ValueError:
+        message = f"expected N@SIZE (e.g. 90000@128), got {text!r}"
+        raise argparse.ArgumentTypeError(message) from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 500_000],
-                        help="numbers of Gaussians")
-    parser.add_argument("--resolutions", type=int, nargs="+", default=[256, 800],
-                        help="square image sizes in pixels")
-    parser.add_argument("--channels", type=int, nargs="+", default=[3, 11],
+    parser.add_argument("--cases", type=case, nargs="+",
+                        default=[(90_000, 128), (100_000, 256), (500_000, 800)],
+                        help="N@SIZE: N Gaussians at a SIZE x SIZE image")
+    parser.add_argument("--channels", type=int, nargs="+", default=[3],
                         help="feature channel counts")
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs per measurement")
-    parser.add_argument("--baseline-max", type=int, default=100_000,
-                        help="skip the pure-torch baseline above this many Gaussians (it is slow)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per measurement")
+    parser.add_argument("--baseline-max", type=int, default=0,
+                        help="also time the pure-torch renderer up to this many Gaussians "
+                             "(default 0: not at all; it is slow)")
     parser.add_argument("--seed", type=int, default=0)
 
 
@@ -82,6 +101,13 @@ def time_renderer(render: Renderer, arrays: list[torch.Tensor], cam: Camera,
     return statistics.median(forward), statistics.median(backward)
 
 
+def executor(backend: str) -> Renderer:
+    def render(*args: object, **kwargs: object) -> splat.RenderOutput:
+        return splat.rasterize(*args, **kwargs, backend=backend)
+
+    return render
+
+
 def torch_renderer(n: int, size: int) -> tuple[str, Renderer]:
     """The dense renderer when its tables fit in the budget, else the tiled one."""
     if _DENSE_TABLES * 4 * n * size * size <= _DENSE_BUDGET_BYTES:
@@ -93,31 +119,54 @@ def torch_renderer(n: int, size: int) -> tuple[str, Renderer]:
     return "tiled", tiled
 
 
+def forward_stats(arrays: list[torch.Tensor], cam: Camera) -> tuple[dict, dict]:
+    """The work counters of one forward pass on each executor (cpu, wgpu)."""
+    args = (*(a.contiguous().numpy() for a in arrays),
+            np.ascontiguousarray(cam.world_to_cam, dtype=np.float32),
+            (cam.fx, cam.fy, cam.cx, cam.cy), cam.width, cam.height,
+            np.zeros(arrays[4].shape[1], dtype=np.float32), True)
+    *_, cpu_state = _core.rasterize_forward_cpu(*args)
+    *_, gpu_state = _core.rasterize_forward(*args)
+    return cpu_state.stats(), gpu_state.stats()
+
+
 def run(args: argparse.Namespace) -> int:
     info = adapter_info()
-    print(f"adapter: {info['name']} ({info['backend']}, {info['device_type']}), "
-          f"float32 atomics: {info['float32_atomics']}")
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; "
+    auto, reason = splat.auto_backend()
+    print(f"adapter: {info['name']} ({info['backend']}, {info['device_type']}); "
+          f"auto picks {auto}: {reason}")
+    print(f"cpu executor: {_core.cpu_threads()} threads; torch {torch.__version__}; "
           f"median of {args.repeats} runs, depth on; times in ms")
-    header = (f"{'N':>8} {'image':>9} {'C':>3} | {'gpu fwd':>8} {'gpu bwd':>8} {'total':>8} | "
-              f"{'torch':>6} {'fwd':>9} {'bwd':>9} | {'speed-up':>8}")
+    header = (f"{'N':>7} {'image':>9} {'C':>2} | {'wgpu fwd':>8} {'bwd':>7} {'total':>7} | "
+              f"{'cpu fwd':>7} {'bwd':>6} {'total':>6} | {'wgpu/cpu':>8} | {'eval/px':>7} "
+              f"{'useful':>6} {'wgpu<=':>7} | {'MiB':>5}")
+    if args.baseline_max:
+        header += f" | {'torch':>6} {'total':>9}"
     print(header)
     print("-" * len(header))
-    for n in args.sizes:
-        for size in args.resolutions:
-            cam = camera(size)
-            for channels in args.channels:
-                arrays = scene(n, channels, args.seed)
-                time_renderer(splat.rasterize, arrays, cam, 1)  # warm-up: pipelines, pool
-                fwd, bwd = time_renderer(splat.rasterize, arrays, cam, args.repeats)
-                line = (f"{n:>8} {size:>4}x{size:<4} {channels:>3} | {fwd:>8.1f} {bwd:>8.1f} "
-                        f"{fwd + bwd:>8.1f} | ")
-                if n <= args.baseline_max:
-                    kind, render = torch_renderer(n, size)
-                    tfwd, tbwd = time_renderer(render, arrays, cam, 1)
-                    line += (f"{kind:>6} {tfwd:>9.1f} {tbwd:>9.1f} | "
-                             f"{(tfwd + tbwd) / (fwd + bwd):>7.1f}x")
-                else:
-                    line += f"{'-':>6} {'skipped':>9} {'':>9} | {'-':>8}"
-                print(line, flush=True)
+    for n, size in args.cases:
+        cam = camera(size)
+        pixels = size * size
+        for channels in args.channels:
+            arrays = scene(n, channels, args.seed)
+            totals = {}
+            line = f"{n:>7} {size:>4}x{size:<4} {channels:>2} | "
+            for backend in ("wgpu", "cpu"):
+                render = executor(backend)
+                time_renderer(render, arrays, cam, 1)  # warm-up: pipelines, pools, threads
+                fwd, bwd = time_renderer(render, arrays, cam, args.repeats)
+                totals[backend] = fwd + bwd
+                width = 8 if backend == "wgpu" else 7
+                line += f"{fwd:>{width}.1f} {bwd:>{width - 1}.1f} {fwd + bwd:>{width - 1}.1f} | "
+            cpu, gpu = forward_stats(arrays, cam)
+            memory = (cpu["state_bytes"] + cpu["backward_bytes"]) / 2**20
+            line += (f"{totals['wgpu'] / totals['cpu']:>7.1f}x | "
+                     f"{cpu['evaluations'] / pixels:>7.1f} "
+                     f"{cpu['contributions'] / max(cpu['evaluations'], 1):>6.0%} "
+                     f"{gpu['pairs'] * _GPU_TILE_PIXELS / pixels:>7.0f} | {memory:>5.1f}")
+            if n <= args.baseline_max:
+                kind, render = torch_renderer(n, size)
+                tfwd, tbwd = time_renderer(render, arrays, cam, 1)
+                line += f" | {kind:>6} {tfwd + tbwd:>9.1f}"
+            print(line, flush=True)
     return 0

@@ -1,4 +1,4 @@
-//! The numbers of the rasterizer contract (/work/notes/raster_contract.md), in one place so the
+//! The numbers of the rasterizer contract (docs/raster-contract.md), in one place so the
 //! GPU kernels (specialised with them) and the f64 reference cannot drift apart.
 
 /// Gaussians closer than this (camera-space z) are culled.

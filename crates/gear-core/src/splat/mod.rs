@@ -1,11 +1,14 @@
-//! Differentiable Gaussian rasterizer: WGSL kernels, host code, and the f64 CPU reference.
+//! Differentiable Gaussian rasterizer: WGSL kernels and their host code, the native CPU
+//! executor ([`cpu`]), and the f64 CPU reference.
 //!
 //! The maths every implementation follows is the rasterizer contract
-//! (`/work/notes/raster_contract.md`); its constants live in [`constants`]. The GPU path is
-//! [`forward`] then [`backward`]; [`reference`] is the same maths on the CPU in f64.
+//! (`docs/raster-contract.md`); its constants live in [`constants`]. The GPU path is
+//! [`forward`] then [`backward`]; [`cpu`] computes the same in f32 with threads; [`reference`]
+//! is the same maths on the CPU in f64.
 
 mod backward;
 pub mod constants;
+pub mod cpu;
 mod forward;
 mod frame;
 mod kernels;

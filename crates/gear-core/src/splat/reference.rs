@@ -1,7 +1,7 @@
 //! The rasterizer contract on the CPU in f64: forward and analytic backward, written for clarity.
 //!
 //! This is the yardstick of the GPU kernels' parity tests, so it follows the contract
-//! (`/work/notes/raster_contract.md`) step by step and favours plain code over speed: every
+//! (`docs/raster-contract.md`) step by step and favours plain code over speed: every
 //! Gaussian is tested against every pixel of its tile rectangle, per-tile lists are sorted by
 //! depth, and the backward pass replays each pixel's blend from back to front.
 //!

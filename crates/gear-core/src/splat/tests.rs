@@ -10,12 +10,17 @@ use super::types::{Camera, GaussianGradients, OutputGradients, OwnedGaussians, R
 use crate::gpu::GpuContext;
 
 /// `n` Gaussians spread through the view of [`camera`], of a few pixels to a few tiles.
-fn random_scene(n: usize, channels: usize, seed: u64) -> OwnedGaussians {
+pub(crate) fn random_scene(n: usize, channels: usize, seed: u64) -> OwnedGaussians {
     random_scene_sized(n, channels, seed, -4.0)
 }
 
 /// As [`random_scene`] with log-scales around `log_scale`.
-fn random_scene_sized(n: usize, channels: usize, seed: u64, log_scale: f32) -> OwnedGaussians {
+pub(crate) fn random_scene_sized(
+    n: usize,
+    channels: usize,
+    seed: u64,
+    log_scale: f32,
+) -> OwnedGaussians {
     let mut rng = Rng(seed);
     let mut s = OwnedGaussians::new(channels);
     for _ in 0..n {
@@ -46,7 +51,10 @@ fn random_scene_sized(n: usize, channels: usize, seed: u64, log_scale: f32) -> O
 
 /// Isotropic Gaussians from rows of (mean, quaternion, log-scale, opacity logit), each with
 /// features 0.25, 0.35, ...
-fn plain_scene(channels: usize, rows: &[([f32; 3], [f32; 4], f32, f32)]) -> OwnedGaussians {
+pub(crate) fn plain_scene(
+    channels: usize,
+    rows: &[([f32; 3], [f32; 4], f32, f32)],
+) -> OwnedGaussians {
     let features: Vec<f32> = (0..channels).map(|c| 0.25 + 0.1 * c as f32).collect();
     let mut s = OwnedGaussians::new(channels);
     for &(mean, quat, log_scale, logit) in rows {
@@ -56,7 +64,7 @@ fn plain_scene(channels: usize, rows: &[([f32; 3], [f32; 4], f32, f32)]) -> Owne
 }
 
 /// A camera 4 units from the origin, slightly rotated about y so W_rot is not the identity.
-fn camera(width: u32, height: u32) -> Camera {
+pub(crate) fn camera(width: u32, height: u32) -> Camera {
     let (s, c) = 0.2f32.sin_cos();
     Camera {
         world_to_cam: [
@@ -74,14 +82,14 @@ fn camera(width: u32, height: u32) -> Camera {
     }
 }
 
-fn options(channels: usize, depth: bool) -> RenderOptions {
+pub(crate) fn options(channels: usize, depth: bool) -> RenderOptions {
     RenderOptions {
         depth,
         background: (0..channels).map(|c| 0.1 + 0.05 * c as f32).collect(),
     }
 }
 
-fn max_abs_diff(gpu: &[f32], reference: &[f64]) -> f64 {
+pub(crate) fn max_abs_diff(gpu: &[f32], reference: &[f64]) -> f64 {
     assert_eq!(gpu.len(), reference.len());
     gpu.iter()
         .zip(reference)
@@ -93,7 +101,7 @@ fn max_abs_diff(gpu: &[f32], reference: &[f64]) -> f64 {
 }
 
 /// ‖gpu - reference‖ / max(‖reference‖, floor).
-fn relative_l2(gpu: &[f32], reference: &[f64]) -> f64 {
+pub(crate) fn relative_l2(gpu: &[f32], reference: &[f64]) -> f64 {
     assert_eq!(gpu.len(), reference.len());
     let (mut diff, mut norm) = (0.0, 0.0);
     for (&g, &r) in gpu.iter().zip(reference) {
@@ -108,7 +116,7 @@ fn relative_l2(gpu: &[f32], reference: &[f64]) -> f64 {
     }
 }
 
-fn random_image_grads(pixels: usize, channels: usize, seed: u64) -> Vec<Vec<f32>> {
+pub(crate) fn random_image_grads(pixels: usize, channels: usize, seed: u64) -> Vec<Vec<f32>> {
     let mut rng = Rng(seed);
     [pixels * channels, pixels, pixels]
         .iter()
@@ -116,11 +124,11 @@ fn random_image_grads(pixels: usize, channels: usize, seed: u64) -> Vec<Vec<f32>
         .collect()
 }
 
-fn all_finite(values: &[f32]) -> bool {
+pub(crate) fn all_finite(values: &[f32]) -> bool {
     values.iter().all(|v| v.is_finite())
 }
 
-fn gradients_finite(g: &GaussianGradients<f32>) -> bool {
+pub(crate) fn gradients_finite(g: &GaussianGradients<f32>) -> bool {
     all_finite(bytemuck::cast_slice(&g.means))
         && all_finite(bytemuck::cast_slice(&g.quats))
         && all_finite(bytemuck::cast_slice(&g.log_scales))
@@ -130,13 +138,13 @@ fn gradients_finite(g: &GaussianGradients<f32>) -> bool {
 
 /// Max abs error and the fraction of values off by more than 1e-4.
 #[derive(Debug, Clone, Copy, Default)]
-struct ImageError {
-    max: f64,
-    over: f64,
+pub(crate) struct ImageError {
+    pub max: f64,
+    pub over: f64,
 }
 
 impl ImageError {
-    fn of(gpu: &[f32], reference: &[f64]) -> Self {
+    pub fn of(gpu: &[f32], reference: &[f64]) -> Self {
         let over = gpu
             .iter()
             .zip(reference)
@@ -151,11 +159,11 @@ impl ImageError {
     }
 
     /// Within 1e-4 except for rare discrete f32/f64 disagreements (see forward_matches_reference).
-    fn within_flips(self) -> bool {
+    pub fn within_flips(self) -> bool {
         self.max <= 5e-3 && self.over <= 2e-4
     }
 
-    fn worst(self, other: Self) -> Self {
+    pub fn worst(self, other: Self) -> Self {
         ImageError {
             max: self.max.max(other.max),
             over: self.over.max(other.over),
@@ -271,7 +279,10 @@ fn gradients(
 }
 
 /// Relative L2 error of each gradient array (means, quats, log_scales, opacity, features).
-fn gradient_errors(gpu: &GaussianGradients<f32>, r: &GaussianGradients<f64>) -> [f64; 5] {
+pub(crate) fn gradient_errors(
+    gpu: &GaussianGradients<f32>,
+    r: &GaussianGradients<f64>,
+) -> [f64; 5] {
     [
         relative_l2(
             bytemuck::cast_slice(&gpu.means),
@@ -344,7 +355,7 @@ fn gradients_match_reference() {
 }
 
 /// The geometric gradients (means, quats, log_scales, opacity) as one flat array.
-fn geometry_gradients(g: &GaussianGradients<f32>) -> Vec<f32> {
+pub(crate) fn geometry_gradients(g: &GaussianGradients<f32>) -> Vec<f32> {
     let mut flat: Vec<f32> = bytemuck::cast_slice(&g.means).to_vec();
     flat.extend_from_slice(bytemuck::cast_slice(&g.quats));
     flat.extend_from_slice(bytemuck::cast_slice(&g.log_scales));
@@ -407,7 +418,7 @@ fn features_grad_off_keeps_other_gradients() {
 }
 
 /// A camera at the origin looking down +z (world = camera space), for placing hard cases.
-fn origin_camera(width: u32, height: u32) -> Camera {
+pub(crate) fn origin_camera(width: u32, height: u32) -> Camera {
     Camera {
         world_to_cam: [
             [1.0, 0.0, 0.0, 0.0],

@@ -1,0 +1,287 @@
+//! The forward blend of the CPU executor: bands of TILE image rows in parallel, each tile of a
+//! band gathers its depth-ordered list once, then every pixel row of the tile (eight pixels,
+//! one SIMD row) walks the list front to back with the contract's guards. Before any
+//! exponential a row asks the entry whether its 1/255 ellipse spans one of the row's pixel
+//! centres ([`Splat::meets_row`]), and the walk stops once all eight pixels have stopped.
+
+// Lane loops index several [f32; 8] arrays in step: the form the compiler vectorises.
+#![allow(clippy::needless_range_loop)]
+
+use rayon::prelude::*;
+
+use super::bins::{Bins, Splat};
+use super::lanes::{evaluate, with_avx2, Lanes, LANES};
+use super::TILE;
+use crate::splat::constants::MIN_TRANSMITTANCE;
+
+/// Per pixel what the backward replays: final transmittance and the end of the consumed list
+/// prefix (an index into the tile lists).
+pub(super) struct PixelState {
+    pub final_t: Vec<f32>,
+    pub consumed: Vec<u32>,
+}
+
+/// Work counters of a forward blend.
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct BlendCounts {
+    /// Gaussian-pixel evaluations (eight per row that passed the row test, minus pixels past
+    /// the image edge).
+    pub evaluations: u64,
+    /// Of those, the ones blended into their pixel.
+    pub contributions: u64,
+}
+
+impl BlendCounts {
+    fn add(self, other: Self) -> Self {
+        BlendCounts {
+            evaluations: self.evaluations + other.evaluations,
+            contributions: self.contributions + other.contributions,
+        }
+    }
+}
+
+/// A tile's list gathered contiguously: blend data and features of each entry.
+pub(super) struct TileList {
+    pub splats: Vec<Splat>,
+    pub features: Vec<f32>,
+}
+
+impl TileList {
+    pub fn new() -> Self {
+        TileList {
+            splats: Vec::new(),
+            features: Vec::new(),
+        }
+    }
+
+    pub fn gather(&mut self, bins: &Bins, tile: usize, features: &[f32], channels: usize) {
+        let entries = &bins.entries[bins.range(tile)];
+        self.splats.clear();
+        self.splats
+            .extend(entries.iter().map(|&g| bins.splats[g as usize]));
+        self.features.clear();
+        for &g in entries {
+            let g = g as usize;
+            self.features
+                .extend_from_slice(&features[g * channels..(g + 1) * channels]);
+        }
+    }
+}
+
+/// Where a pixel row of a tile lies.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Row {
+    /// Pixels inside the image (0 for a row below it, else 1..=8).
+    pub len: usize,
+    /// Pixel-centre y and the pixel-centre x of the eight lanes.
+    pub cy: f32,
+    pub xs: Lanes,
+}
+
+impl Row {
+    pub fn new(x0: u32, y: u32, width: u32, height: u32) -> Self {
+        Row {
+            len: if y < height {
+                (width - x0).min(LANES as u32) as usize
+            } else {
+                0
+            },
+            cy: y as f32 + 0.5,
+            xs: std::array::from_fn(|i| x0 as f32 + 0.5 + i as f32),
+        }
+    }
+
+    /// The TILE rows of tile (tx, ty).
+    pub fn of_tile(tx: u32, ty: u32, width: u32, height: u32) -> [Row; TILE as usize] {
+        std::array::from_fn(|r| Row::new(tx * TILE, ty * TILE + r as u32, width, height))
+    }
+
+    /// Whether entry `s` can reach one of the row's pixels; `dy` is cy - v.
+    #[inline(always)]
+    pub fn meets(&self, s: &Splat, dy: f32) -> bool {
+        s.meets_row(dy, self.xs[0], self.xs[self.len.max(1) - 1])
+    }
+}
+
+/// The rows of a tile whose first pixel centre is at `y0` that entry `s` may reach: those
+/// within its ellipse's vertical extent (a superset; [`Row::meets`] decides).
+#[inline(always)]
+pub(super) fn rows_of(s: &Splat, y0: f32) -> std::ops::Range<usize> {
+    let h = s.reach.max(0.0).sqrt() + 0.01;
+    let lo = (s.v - h - y0).ceil().max(0.0);
+    let hi = (s.v + h - y0).floor().min(TILE as f32 - 1.0);
+    if hi < lo {
+        0..0
+    } else {
+        lo as usize..hi as usize + 1
+    }
+}
+
+/// The output images of one band of rows (image-wide layouts, band slices).
+struct BandImages<'a> {
+    features: &'a mut [f32],
+    alpha: &'a mut [f32],
+    depth: &'a mut [f32],
+    final_t: &'a mut [f32],
+    consumed: &'a mut [u32],
+}
+
+/// Inputs of the blend that every band shares.
+pub(super) struct Scene<'a> {
+    pub bins: &'a Bins,
+    pub features: &'a [f32],
+    pub channels: usize,
+    pub width: u32,
+    pub height: u32,
+    pub background: &'a [f32],
+    pub depth: bool,
+}
+
+/// Blends every tile; returns features (H x W x C), alpha, depth (H x W; zeros without depth),
+/// the pixel state and the work counts. Call inside the executor's thread pool.
+pub(super) fn blend(scene: &Scene) -> (Vec<f32>, Vec<f32>, Vec<f32>, PixelState, BlendCounts) {
+    let (w, c) = (scene.width as usize, scene.channels);
+    let pixels = w * scene.height as usize;
+    let band = TILE as usize * w;
+    // NaN until written, so that a pixel the blend missed cannot pass for a result.
+    let mut features = vec![f32::NAN; pixels * c];
+    let mut alpha = vec![f32::NAN; pixels];
+    let mut depth = vec![f32::NAN; pixels];
+    let mut final_t = vec![f32::NAN; pixels];
+    let mut consumed = vec![0u32; pixels];
+    let counts = features
+        .par_chunks_mut(band * c)
+        .zip(alpha.par_chunks_mut(band))
+        .zip(depth.par_chunks_mut(band))
+        .zip(final_t.par_chunks_mut(band))
+        .zip(consumed.par_chunks_mut(band))
+        .enumerate()
+        .map(|(b, ((((features, alpha), depth), final_t), consumed))| {
+            let images = BandImages {
+                features,
+                alpha,
+                depth,
+                final_t,
+                consumed,
+            };
+            blend_band(scene, b as u32, images)
+        })
+        .reduce(BlendCounts::default, BlendCounts::add);
+    let state = PixelState { final_t, consumed };
+    (features, alpha, depth, state, counts)
+}
+
+with_avx2!(
+    /// Blends the tiles of one band of rows.
+    fn blend_band(scene: &Scene, band: u32, out: BandImages) -> BlendCounts = blend_band_body
+);
+
+#[inline(always)]
+fn blend_band_body(scene: &Scene, band: u32, mut out: BandImages) -> BlendCounts {
+    let bins = scene.bins;
+    let mut list = TileList::new();
+    let mut acc = vec![[0.0f32; LANES]; TILE as usize * scene.channels];
+    let mut counts = BlendCounts::default();
+    for tx in 0..bins.tiles_x {
+        let tile = (band * bins.tiles_x + tx) as usize;
+        list.gather(bins, tile, scene.features, scene.channels);
+        let rows = Row::of_tile(tx, band, scene.width, scene.height);
+        let start = bins.tile_offsets[tile];
+        counts = counts.add(blend_tile(
+            scene, &list, start, &rows, &mut acc, tx, &mut out,
+        ));
+    }
+    counts
+}
+
+/// A pixel row's blend state.
+#[derive(Clone, Copy)]
+struct RowState {
+    t: Lanes,
+    depth: Lanes,
+    consumed: [u32; LANES],
+    stopped: [bool; LANES],
+    /// Pixels still blending.
+    live: usize,
+}
+
+/// Blends one tile's list front to back into its rows and stores their pixels. The list is
+/// walked once for all rows; an entry visits only the rows its ellipse spans.
+#[inline(always)]
+fn blend_tile(
+    scene: &Scene,
+    list: &TileList,
+    start: u32,
+    rows: &[Row; TILE as usize],
+    acc: &mut [Lanes],
+    tx: u32,
+    out: &mut BandImages,
+) -> BlendCounts {
+    let channels = scene.channels;
+    let mut state: [RowState; TILE as usize] = std::array::from_fn(|r| RowState {
+        t: [1.0; LANES],
+        depth: [0.0; LANES],
+        consumed: [start; LANES],
+        stopped: std::array::from_fn(|i| i >= rows[r].len),
+        live: rows[r].len,
+    });
+    let mut live: usize = state.iter().map(|s| s.live).sum();
+    let mut counts = BlendCounts::default();
+    acc.fill([0.0; LANES]);
+    let y0 = rows[0].cy;
+    for (j, s) in list.splats.iter().enumerate() {
+        if live == 0 {
+            break;
+        }
+        let next_consumed = start + j as u32 + 1;
+        let f = &list.features[j * channels..(j + 1) * channels];
+        for r in rows_of(s, y0) {
+            let (row, st) = (&rows[r], &mut state[r]);
+            let dy = row.cy - s.v;
+            if st.live == 0 || !row.meets(s, dy) {
+                continue;
+            }
+            counts.evaluations += row.len as u64;
+            let e = evaluate(s, &row.xs, dy);
+            let mut w = [0.0f32; LANES];
+            for i in 0..LANES {
+                let next = st.t[i] * (1.0 - e.alpha[i]);
+                let hit = !st.stopped[i] && e.passes[i];
+                let stop = hit && next < MIN_TRANSMITTANCE as f32;
+                let blend = hit && !stop;
+                st.stopped[i] |= stop;
+                st.live -= usize::from(stop);
+                live -= usize::from(stop);
+                counts.contributions += u64::from(blend);
+                w[i] = if blend { e.alpha[i] * st.t[i] } else { 0.0 };
+                st.t[i] = if blend { next } else { st.t[i] };
+                st.consumed[i] = if blend { next_consumed } else { st.consumed[i] };
+            }
+            for (a, &fc) in acc[r * channels..(r + 1) * channels].iter_mut().zip(f) {
+                for i in 0..LANES {
+                    a[i] += w[i] * fc;
+                }
+            }
+            if scene.depth {
+                for i in 0..LANES {
+                    st.depth[i] += w[i] * s.z;
+                }
+            }
+        }
+    }
+    for (r, (row, st)) in rows.iter().zip(&state).enumerate() {
+        let first = r * scene.width as usize + (tx * TILE) as usize;
+        for i in 0..row.len {
+            let pix = first + i;
+            for c in 0..channels {
+                out.features[pix * channels + c] =
+                    acc[r * channels + c][i] + st.t[i] * scene.background[c];
+            }
+            out.alpha[pix] = 1.0 - st.t[i];
+            out.depth[pix] = st.depth[i];
+            out.final_t[pix] = st.t[i];
+            out.consumed[pix] = st.consumed[i];
+        }
+    }
+    counts
+}

@@ -1,0 +1,304 @@
+//! The backward of the CPU blend, without atomics: bands of tiles in parallel, each pixel row
+//! replays its consumed list prefix back to front (T_i = T_{i+1} / (1 - alpha_i) from the
+//! stored final T, as blend_backward.wgsl), and adds its eight pixels' contributions to the
+//! gradient record of that (tile, entry) pair. Rows of a tile run in order on one thread, and
+//! a pair belongs to one tile, so every record is summed in a fixed order whatever the thread
+//! count; the per-Gaussian reduction over its pairs (mod.rs) is in a fixed order too.
+
+// Lane loops index several [f32; 8] arrays in step: the form the compiler vectorises.
+#![allow(clippy::needless_range_loop)]
+
+use rayon::prelude::*;
+
+use super::bins::split_lengths;
+use super::blend::{rows_of, PixelState, Row, Scene, TileList};
+use super::lanes::{evaluate, with_avx2, Lanes, LANES};
+use super::TILE;
+use crate::splat::constants::MAX_ALPHA;
+use crate::splat::types::OutputGradients;
+
+/// Values of a pair record before its feature gradients: conic a, b, c, mean u, v, opacity, z.
+pub(super) const GEOMETRY: usize = 7;
+
+/// Per-pixel inputs of the backward.
+pub(super) struct Replay<'a> {
+    pub state: &'a PixelState,
+    pub grads: &'a OutputGradients<'a, f32>,
+    /// Also sum the feature gradients (records then hold GEOMETRY + C values, else GEOMETRY).
+    pub features_grad: bool,
+}
+
+impl Replay<'_> {
+    pub fn stride(&self, channels: usize) -> usize {
+        GEOMETRY + if self.features_grad { channels } else { 0 }
+    }
+}
+
+/// The gradient record of every (tile, entry) pair, in tile-list order (pairs x stride).
+pub(super) fn blend_backward(scene: &Scene, replay: &Replay) -> Vec<f32> {
+    let bins = scene.bins;
+    let stride = replay.stride(scene.channels);
+    let mut records = vec![0.0f32; bins.pairs() * stride];
+    let tiles_x = bins.tiles_x as usize;
+    let band_pairs = (0..bins.tiles_y as usize).map(|b| {
+        let (first, end) = (b * tiles_x, (b + 1) * tiles_x);
+        (bins.tile_offsets[end] - bins.tile_offsets[first]) as usize * stride
+    });
+    split_lengths(&mut records, band_pairs)
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(b, band)| replay_band(scene, replay, b as u32, band));
+    records
+}
+
+with_avx2!(
+    /// Replays the tiles of one band of rows into their pair records.
+    fn replay_band(scene: &Scene, replay: &Replay, band: u32, records: &mut [f32]) -> () =
+        replay_band_body
+);
+
+#[inline(always)]
+fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &mut [f32]) {
+    let bins = scene.bins;
+    let stride = replay.stride(scene.channels);
+    let band_start = bins.tile_offsets[(band * bins.tiles_x) as usize] as usize;
+    let mut list = TileList::new();
+    let mut buffers = TileBuffers::new(scene.channels);
+    for tx in 0..bins.tiles_x {
+        let tile = (band * bins.tiles_x + tx) as usize;
+        let range = bins.range(tile);
+        if range.is_empty() {
+            continue;
+        }
+        list.gather(bins, tile, scene.features, scene.channels);
+        let tile_records =
+            &mut records[(range.start - band_start) * stride..(range.end - band_start) * stride];
+        let rows = Row::of_tile(tx, band, scene.width, scene.height);
+        replay_tile(
+            scene,
+            replay,
+            &list,
+            range.start as u32,
+            &rows,
+            tx,
+            &mut buffers,
+            tile_records,
+        );
+    }
+}
+
+/// A pixel row's replay state.
+#[derive(Clone, Copy, Default)]
+struct RowState {
+    /// T after the entries replayed so far (T_{i+1} for the next one, i).
+    t: Lanes,
+    final_t: Lanes,
+    consumed: [u32; LANES],
+    /// The row's longest consumed prefix end.
+    last: u32,
+    grad_alpha: Lanes,
+    grad_depth: Lanes,
+    /// Σ_{j>i} w_j z_j.
+    behind_d: Lanes,
+}
+
+/// Per-channel lanes of a tile's rows (row r, channel c at r·C + c), reused between tiles.
+struct TileBuffers {
+    grad_f: Vec<Lanes>,
+    /// Σ_{j>i} w_j f_j + T_final · background.
+    behind_f: Vec<Lanes>,
+    /// The current entry's contributions summed over the rows, per lane (record layout).
+    sums: Vec<Lanes>,
+}
+
+impl TileBuffers {
+    fn new(channels: usize) -> Self {
+        let lanes = TILE as usize * channels;
+        TileBuffers {
+            grad_f: vec![[0.0; LANES]; lanes],
+            behind_f: vec![[0.0; LANES]; lanes],
+            sums: vec![[0.0; LANES]; GEOMETRY + channels],
+        }
+    }
+}
+
+/// The eight lanes summed as a fixed tree (vectorises; the same order every time).
+fn lane_sum(v: &Lanes) -> f32 {
+    ((v[0] + v[4]) + (v[2] + v[6])) + ((v[1] + v[5]) + (v[3] + v[7]))
+}
+
+/// Loads a row's pixel state and image gradients (lanes past the image edge consumed nothing
+/// and carry zero gradients).
+#[inline(always)]
+fn load_row(
+    scene: &Scene,
+    replay: &Replay,
+    row: &Row,
+    r: usize,
+    first: usize,
+    start: u32,
+    buffers: &mut TileBuffers,
+) -> RowState {
+    let channels = scene.channels;
+    let grads = replay.grads;
+    let mut st = RowState {
+        consumed: [start; LANES],
+        ..RowState::default()
+    };
+    for i in 0..row.len {
+        let pix = first + i;
+        st.final_t[i] = replay.state.final_t[pix];
+        st.consumed[i] = replay.state.consumed[pix];
+        st.grad_alpha[i] = grads.alpha[pix];
+        if scene.depth {
+            st.grad_depth[i] = grads.depth.map_or(0.0, |d| d[pix]);
+        }
+    }
+    st.t = st.final_t;
+    st.last = *st.consumed.iter().max().unwrap();
+    for c in 0..channels {
+        let (g, behind) = (
+            &mut buffers.grad_f[r * channels + c],
+            &mut buffers.behind_f[r * channels + c],
+        );
+        for i in 0..LANES {
+            g[i] = if i < row.len {
+                grads.features[(first + i) * channels + c]
+            } else {
+                0.0
+            };
+            behind[i] = st.final_t[i] * scene.background[c];
+        }
+    }
+    st
+}
+
+/// Replays a tile's list back to front for all its rows at once (from the longest consumed
+/// prefix; an entry visits only the rows its ellipse spans and that consumed it), adding each
+/// row's contributions to the entry's record, rows in increasing order.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn replay_tile(
+    scene: &Scene,
+    replay: &Replay,
+    list: &TileList,
+    start: u32,
+    rows: &[Row; TILE as usize],
+    tx: u32,
+    buffers: &mut TileBuffers,
+    records: &mut [f32],
+) {
+    let channels = scene.channels;
+    let stride = replay.stride(channels);
+    let mut state: [RowState; TILE as usize] = std::array::from_fn(|r| {
+        let first = ((rows[r].cy - 0.5) as u32 * scene.width + tx * TILE) as usize;
+        if rows[r].len == 0 {
+            RowState {
+                consumed: [start; LANES],
+                last: start,
+                ..RowState::default()
+            }
+        } else {
+            load_row(scene, replay, &rows[r], r, first, start, buffers)
+        }
+    });
+    let last = state.iter().map(|s| s.last).max().unwrap();
+    let y0 = rows[0].cy;
+    let zero = [0.0f32; LANES];
+    for k in (start..last).rev() {
+        let j = (k - start) as usize;
+        let s = &list.splats[j];
+        let f = &list.features[j * channels..(j + 1) * channels];
+        let mut touched = false;
+        for r in rows_of(s, y0) {
+            let (row, st) = (&rows[r], &mut state[r]);
+            if k >= st.last {
+                continue;
+            }
+            let dy = row.cy - s.v;
+            if !row.meets(s, dy) {
+                continue;
+            }
+            let e = evaluate(s, &row.xs, dy);
+            let hit: [bool; LANES] = std::array::from_fn(|i| k < st.consumed[i] && e.passes[i]);
+            if !hit.iter().any(|&h| h) {
+                continue;
+            }
+            if !touched {
+                buffers.sums[..stride].fill(zero);
+                touched = true;
+            }
+            let mut inv_keep = zero;
+            let mut t_i = zero;
+            let mut w = zero;
+            let mut grad_a = zero;
+            for i in 0..LANES {
+                // One division per lane; the terms below multiply by its reciprocal.
+                inv_keep[i] = 1.0 / (1.0 - e.alpha[i]);
+                t_i[i] = st.t[i] * inv_keep[i];
+                w[i] = e.alpha[i] * t_i[i];
+                // dL/dalpha_i: own contribution T_i·f_i minus 1/(1-alpha_i) times what it hides.
+                grad_a[i] = st.grad_alpha[i] * st.final_t[i] * inv_keep[i];
+            }
+            let sums = &mut buffers.sums;
+            for (c, &fc) in f.iter().enumerate() {
+                let g = &buffers.grad_f[r * channels + c];
+                let behind = &mut buffers.behind_f[r * channels + c];
+                for i in 0..LANES {
+                    grad_a[i] += g[i] * (fc * t_i[i] - behind[i] * inv_keep[i]);
+                    behind[i] = if hit[i] {
+                        behind[i] + w[i] * fc
+                    } else {
+                        behind[i]
+                    };
+                }
+                if replay.features_grad {
+                    let sum = &mut sums[GEOMETRY + c];
+                    for i in 0..LANES {
+                        sum[i] += if hit[i] { w[i] * g[i] } else { 0.0 };
+                    }
+                }
+            }
+            if scene.depth {
+                for i in 0..LANES {
+                    grad_a[i] += st.grad_depth[i] * (s.z * t_i[i] - st.behind_d[i] * inv_keep[i]);
+                    sums[6][i] += if hit[i] { w[i] * st.grad_depth[i] } else { 0.0 };
+                    st.behind_d[i] = if hit[i] {
+                        st.behind_d[i] + w[i] * s.z
+                    } else {
+                        st.behind_d[i]
+                    };
+                }
+            }
+            // The 0.999 clamp passes no gradient to opacity and power. Term by term over the
+            // lanes (not lane by lane), so that each sum is one vector add.
+            let unclamped: [bool; LANES] =
+                std::array::from_fn(|i| hit[i] && e.raw[i] <= MAX_ALPHA as f32);
+            let gp: Lanes = std::array::from_fn(|i| grad_a[i] * e.alpha[i]);
+            let dx = &e.dx;
+            let terms: [Lanes; 6] = [
+                std::array::from_fn(|i| -0.5 * dx[i] * dx[i] * gp[i]),
+                std::array::from_fn(|i| -dx[i] * dy * gp[i]),
+                std::array::from_fn(|i| -0.5 * dy * dy * gp[i]),
+                std::array::from_fn(|i| (s.a * dx[i] + s.b * dy) * gp[i]),
+                std::array::from_fn(|i| (s.b * dx[i] + s.c * dy) * gp[i]),
+                std::array::from_fn(|i| grad_a[i] * e.gauss[i]),
+            ];
+            for (sum, term) in sums.iter_mut().zip(&terms) {
+                for i in 0..LANES {
+                    sum[i] += if unclamped[i] { term[i] } else { 0.0 };
+                }
+            }
+            for i in 0..LANES {
+                st.t[i] = if hit[i] { t_i[i] } else { st.t[i] };
+            }
+        }
+        // Each pair's record is written once, its rows summed lane-wise in row order first.
+        if touched {
+            let record = &mut records[j * stride..(j + 1) * stride];
+            for (out, v) in record.iter_mut().zip(&buffers.sums) {
+                *out = lane_sum(v);
+            }
+        }
+    }
+}

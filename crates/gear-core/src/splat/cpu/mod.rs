@@ -1,0 +1,271 @@
+//! The native CPU executor of the rasterizer contract: the same maths as the WGSL kernels
+//! (projection, 1/255 tile test, depth-ordered per-tile lists, front-to-back blending with
+//! early termination, and the backward to the five input arrays), run with rayon threads and
+//! eight-pixel SIMD rows. It only evaluates a Gaussian on a pixel row its 1/255 ellipse spans.
+//!
+//! The backward uses no atomics and no per-pixel-per-Gaussian buffers: each (tile, Gaussian)
+//! pair gets a gradient record summed by the one thread that owns the tile, then each
+//! Gaussian's records are reduced in tile order. Gradients are therefore bit-identical for any
+//! thread count and from run to run.
+
+mod bins;
+mod blend;
+mod blend_backward;
+mod lanes;
+mod pool;
+mod project;
+
+#[cfg(test)]
+mod tests;
+
+use rayon::prelude::*;
+use rayon::ThreadPool;
+
+use self::bins::{bin, Bins};
+use self::blend::{blend, PixelState, Scene};
+use self::blend_backward::{blend_backward, Replay, GEOMETRY};
+use self::project::{project, project_backward, InputGradients, View};
+use crate::error::{GearError, Result};
+use crate::splat::types::{
+    Camera, GaussianGradients, Gaussians, OutputGradients, OwnedGaussians, RenderOptions,
+    RenderOutput,
+};
+
+pub use self::pool::{build_pool, global_pool, thread_count};
+
+/// Side of the executor's square tiles: a row of a tile is one eight-lane SIMD row. 8x8 tiles
+/// keep the per-tile lists short (fewer row tests) at the price of more pairs.
+pub const TILE: u32 = 8;
+const _: () = assert!(TILE as usize == lanes::LANES, "a tile row is one SIMD row");
+
+/// What a forward pass did, for benchmarks.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RasterStats {
+    /// (tile, Gaussian) pairs in the tile lists.
+    pub pairs: u64,
+    /// Gaussian-pixel evaluations of the forward blend.
+    pub evaluations: u64,
+    /// Evaluations that were blended into their pixel.
+    pub contributions: u64,
+    /// Bytes held by the forward state (inputs copy, lists, pixel state).
+    pub state_bytes: u64,
+}
+
+/// What [`backward`] needs from [`forward`]: a copy of the inputs, the lists and the pixel
+/// state.
+pub struct CpuState {
+    gaussians: OwnedGaussians,
+    camera: Camera,
+    options: RenderOptions,
+    bins: Bins,
+    pixels: PixelState,
+    pub stats: RasterStats,
+}
+
+impl CpuState {
+    fn scene(&self) -> Scene<'_> {
+        Scene {
+            bins: &self.bins,
+            features: &self.gaussians.features,
+            channels: self.gaussians.channels,
+            width: self.camera.width,
+            height: self.camera.height,
+            background: &self.options.background,
+            depth: self.options.depth,
+        }
+    }
+}
+
+/// Renders `gaussians` seen by `camera` on the CPU, in the process-wide thread pool.
+pub fn forward(
+    gaussians: &Gaussians,
+    camera: &Camera,
+    options: &RenderOptions,
+) -> Result<(RenderOutput<f32>, CpuState)> {
+    forward_in(global_pool()?, gaussians, camera, options)
+}
+
+/// [`forward`] in the thread pool `pool`.
+pub fn forward_in(
+    pool: &ThreadPool,
+    gaussians: &Gaussians,
+    camera: &Camera,
+    options: &RenderOptions,
+) -> Result<(RenderOutput<f32>, CpuState)> {
+    camera.validate()?;
+    gaussians.validate()?;
+    options.validate(gaussians.channels)?;
+    pool.install(|| {
+        let bins = bin(gaussians, camera);
+        let scene = Scene {
+            bins: &bins,
+            features: gaussians.features,
+            channels: gaussians.channels,
+            width: camera.width,
+            height: camera.height,
+            background: &options.background,
+            depth: options.depth,
+        };
+        let (features, alpha, depth, pixels, counts) = blend(&scene);
+        let n = gaussians.len();
+        let word = 4u64;
+        let state_bytes = word
+            * ((n * (11 + gaussians.channels)) // inputs copy
+                + n * std::mem::size_of::<bins::Splat>() / 4
+                + bins.tile_offsets.len()
+                + 2 * bins.entries.len() // entries, pair slots
+                + bins.pair_offsets.len()
+                + 2 * pixels.final_t.len()) as u64;
+        let stats = RasterStats {
+            pairs: bins.pairs() as u64,
+            evaluations: counts.evaluations,
+            contributions: counts.contributions,
+            state_bytes,
+        };
+        let output = RenderOutput {
+            features,
+            alpha,
+            depth: options.depth.then_some(depth),
+        };
+        let state = CpuState {
+            gaussians: OwnedGaussians::from(*gaussians),
+            camera: *camera,
+            options: options.clone(),
+            bins,
+            pixels,
+            stats,
+        };
+        Ok((output, state))
+    })
+}
+
+/// Gradients of a loss with respect to the inputs of the forward pass that made `state`.
+/// Without `features_grad` the feature gradients are not computed (`features` comes back
+/// empty) and the others are bit-identical to those of a full backward.
+pub fn backward(
+    state: &CpuState,
+    grads: &OutputGradients<f32>,
+    features_grad: bool,
+) -> Result<GaussianGradients<f32>> {
+    backward_in(global_pool()?, state, grads, features_grad)
+}
+
+/// Bytes a [`backward`] of `state` allocates at its peak (pair records and the outputs).
+pub fn backward_bytes(state: &CpuState, features_grad: bool) -> u64 {
+    let channels = state.gaussians.channels;
+    let stride = GEOMETRY + if features_grad { channels } else { 0 };
+    let n = state.gaussians.means.len();
+    4 * (state.bins.pairs() * stride + n * (11 + channels) + n) as u64
+}
+
+/// [`backward`] in the thread pool `pool`.
+pub fn backward_in(
+    pool: &ThreadPool,
+    state: &CpuState,
+    grads: &OutputGradients<f32>,
+    features_grad: bool,
+) -> Result<GaussianGradients<f32>> {
+    let channels = state.gaussians.channels;
+    grads.validate(state.camera.pixels(), channels)?;
+    let arrays = [
+        ("grad_features", grads.features),
+        ("grad_alpha", grads.alpha),
+        ("grad_depth", grads.depth.unwrap_or(&[])),
+    ];
+    for (name, values) in arrays {
+        if !values.iter().all(|v| v.is_finite()) {
+            return Err(GearError::InvalidInput(format!(
+                "{name}: values must be finite"
+            )));
+        }
+    }
+    let replay = Replay {
+        state: &state.pixels,
+        grads,
+        features_grad,
+    };
+    pool.install(|| {
+        let records = blend_backward(&state.scene(), &replay);
+        Ok(reduce(state, &records, features_grad))
+    })
+}
+
+/// How many Gaussians ahead [`reduce`] prefetches records.
+const PREFETCH_AHEAD: usize = 12;
+
+/// Hints the CPU to load the cache line of `value`.
+#[inline(always)]
+fn prefetch(value: &f32) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch has no effect on memory; the pointer is valid anyway.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+            (value as *const f32).cast(),
+        );
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = value;
+}
+
+/// Sums each Gaussian's pair records in tile order and chains them through the projection.
+fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGradients<f32> {
+    let gaussians = state.gaussians.view();
+    let n = gaussians.len();
+    let channels = gaussians.channels;
+    let bins = &state.bins;
+    let stride = GEOMETRY + if features_grad { channels } else { 0 };
+    let view = View::new(&state.camera);
+    let out_channels = if features_grad { channels } else { 0 };
+    // One (unused) column without feature gradients keeps the chunks aligned with Gaussians.
+    let width = out_channels.max(1);
+    let mut features = vec![0.0f32; n * width];
+    let mut geometry = vec![InputGradients::default(); n];
+    // Chunks of whole Gaussians (a zero-width feature row when features are skipped).
+    let chunk = 256;
+    geometry
+        .par_chunks_mut(chunk)
+        .zip(features.par_chunks_mut(chunk * width))
+        .enumerate()
+        .for_each(|(ci, (geometry, features))| {
+            let mut sums = vec![0.0f32; stride];
+            for (k, out) in geometry.iter_mut().enumerate() {
+                let g = ci * chunk + k;
+                // Records lie in tile order, so a Gaussian's are scattered: ask for those of a
+                // Gaussian a few ahead while this one is summed.
+                if let Some(&slot) = (g + PREFETCH_AHEAD < n)
+                    .then(|| bins.slots(g + PREFETCH_AHEAD).first())
+                    .flatten()
+                {
+                    prefetch(&records[slot as usize * stride]);
+                }
+                let slots = bins.slots(g);
+                if slots.is_empty() {
+                    continue;
+                }
+                sums.fill(0.0);
+                for &slot in slots {
+                    let record = &records[slot as usize * stride..(slot as usize + 1) * stride];
+                    for (s, v) in sums.iter_mut().zip(record) {
+                        *s += v;
+                    }
+                }
+                let screen: [f32; GEOMETRY] = std::array::from_fn(|q| sums[q]);
+                if let Some(p) = project(&gaussians, g, &view) {
+                    *out = project_backward(&p, &screen, &view);
+                }
+                if out_channels > 0 {
+                    features[k * channels..(k + 1) * channels].copy_from_slice(&sums[GEOMETRY..]);
+                }
+            }
+        });
+    if out_channels == 0 {
+        features = Vec::new();
+    }
+    GaussianGradients {
+        means: geometry.iter().map(|g| g.mean).collect(),
+        quats: geometry.iter().map(|g| g.quat).collect(),
+        log_scales: geometry.iter().map(|g| g.log_scale).collect(),
+        opacity_logits: geometry.iter().map(|g| g.logit).collect(),
+        features,
+    }
+}

@@ -1,0 +1,432 @@
+//! The CPU executor against the f64 reference (same scenes and hard cases as the GPU's tests in
+//! splat/tests.rs), against the GPU kernels, and its determinism: gradients bitwise equal for
+//! any thread count and from run to run.
+
+use rayon::ThreadPool;
+
+use super::{backward_in, build_pool, forward_in, CpuState};
+use crate::splat::reference;
+use crate::splat::tests::{
+    all_finite, camera, geometry_gradients, gradient_errors, gradients_finite, options,
+    origin_camera, plain_scene, random_image_grads, random_scene, random_scene_sized, relative_l2,
+    ImageError,
+};
+use crate::splat::types::{
+    Camera, GaussianGradients, OutputGradients, OwnedGaussians, RenderOutput,
+};
+
+fn pool(threads: usize) -> ThreadPool {
+    build_pool(threads).unwrap()
+}
+
+fn render(
+    pool: &ThreadPool,
+    scene: &OwnedGaussians,
+    cam: &Camera,
+    depth: bool,
+) -> (RenderOutput<f32>, CpuState) {
+    forward_in(pool, &scene.view(), cam, &options(scene.channels, depth)).unwrap()
+}
+
+/// Worst errors of the feature and alpha images, and of depth, against the reference.
+fn forward_errors(scene: &OwnedGaussians, cam: &Camera, depth: bool) -> (ImageError, ImageError) {
+    let reference =
+        reference::forward(&scene.view(), cam, &options(scene.channels, depth)).unwrap();
+    let (out, _) = render(&pool(2), scene, cam, depth);
+    let image = ImageError::of(&out.features, &reference.features)
+        .worst(ImageError::of(&out.alpha, &reference.alpha));
+    let depth_err = match (&out.depth, &reference.depth) {
+        (Some(g), Some(r)) => ImageError::of(g, r),
+        (None, None) => ImageError::default(),
+        _ => panic!("depth present in one output only"),
+    };
+    (image, depth_err)
+}
+
+/// The same scenes and bounds as the GPU's forward_matches_reference.
+#[test]
+fn forward_matches_reference() {
+    let cases = [
+        (1usize, 1u64, (90, 70), -4.0),
+        (16, 2, (90, 70), -4.0),
+        (1000, 3, (90, 70), -4.0),
+        (50_000, 4, (300, 200), -5.5),
+    ];
+    for (n, seed, (w, h), log_scale) in cases {
+        let cam = camera(w, h);
+        for channels in [3usize, 11] {
+            for depth in [false, true] {
+                let scene = random_scene_sized(n, channels, seed + channels as u64, log_scale);
+                let (image, depth_err) = forward_errors(&scene, &cam, depth);
+                eprintln!("cpu forward n={n} C={channels} depth={depth}: {image:?} {depth_err:?}");
+                for (what, e) in [("image", image), ("depth", depth_err)] {
+                    let ok = if n <= 1000 {
+                        e.max <= 1e-4
+                    } else {
+                        e.within_flips()
+                    };
+                    assert!(ok, "n={n} C={channels} depth={depth}: {what} error {e:?}");
+                }
+            }
+        }
+    }
+}
+
+fn image_grads(cam: &Camera, channels: usize, seed: u64) -> Vec<Vec<f32>> {
+    random_image_grads(cam.pixels(), channels, seed)
+}
+
+fn output_grads(img: &[Vec<f32>], depth: bool) -> OutputGradients<'_, f32> {
+    OutputGradients {
+        features: &img[0][..],
+        alpha: &img[1][..],
+        depth: depth.then_some(&img[2][..]),
+    }
+}
+
+/// CPU and reference gradients for the same random image gradients.
+fn gradients(
+    scene: &OwnedGaussians,
+    cam: &Camera,
+    depth: bool,
+) -> (GaussianGradients<f32>, GaussianGradients<f64>) {
+    let pool = pool(2);
+    let (_, state) = render(&pool, scene, cam, depth);
+    let img = image_grads(cam, scene.channels, 99);
+    let cpu = backward_in(&pool, &state, &output_grads(&img, depth), true).unwrap();
+    let wide: Vec<Vec<f64>> = img
+        .iter()
+        .map(|v| v.iter().map(|&x| f64::from(x)).collect())
+        .collect();
+    let reference = reference::backward(
+        &scene.view(),
+        cam,
+        &options(scene.channels, depth),
+        &OutputGradients {
+            features: &wide[0][..],
+            alpha: &wide[1][..],
+            depth: depth.then_some(&wide[2][..]),
+        },
+    )
+    .unwrap();
+    (cpu, reference)
+}
+
+#[test]
+fn gradients_match_reference() {
+    let cases = [
+        (1usize, 5u64, (90, 70)),
+        (1000, 6, (90, 70)),
+        (5000, 7, (200, 130)),
+    ];
+    for (n, seed, (w, h)) in cases {
+        let cam = camera(w, h);
+        for channels in [3usize, 11] {
+            for depth in [false, true] {
+                let scene = random_scene(n, channels, seed + channels as u64);
+                let (cpu, reference) = gradients(&scene, &cam, depth);
+                let errors = gradient_errors(&cpu, &reference);
+                eprintln!("cpu gradients n={n} C={channels} depth={depth}: {errors:?}");
+                // The GPU suite's bound: at 5000 Gaussians f32 itself is ~1e-4 off (the GPU
+                // kernels' errors agree with these to three digits).
+                assert!(
+                    errors.iter().all(|&e| e < 1e-3),
+                    "n={n} C={channels} depth={depth}: {errors:?}"
+                );
+            }
+        }
+    }
+}
+
+/// Without feature gradients the geometric ones are bit-identical (no atomics, fixed order).
+#[test]
+fn features_grad_off_keeps_other_gradients() {
+    let cam = camera(90, 70);
+    let pool = pool(2);
+    for channels in [1usize, 5] {
+        for depth in [false, true] {
+            let scene = random_scene(1000, channels, 40 + channels as u64);
+            let (_, state) = render(&pool, &scene, &cam, depth);
+            let img = image_grads(&cam, channels, 41);
+            let run = |fg| backward_in(&pool, &state, &output_grads(&img, depth), fg).unwrap();
+            let (on, off) = (run(true), run(false));
+            assert_eq!(on.features.len(), 1000 * channels);
+            assert!(off.features.is_empty(), "feature gradients returned");
+            let (on, off) = (geometry_gradients(&on), geometry_gradients(&off));
+            assert!(
+                on.iter().any(|&v| v != 0.0),
+                "no geometric gradient to compare"
+            );
+            assert_eq!(bits(&on), bits(&off), "C={channels} depth={depth}");
+        }
+    }
+}
+
+fn bits(values: &[f32]) -> Vec<u32> {
+    values.iter().map(|v| v.to_bits()).collect()
+}
+
+/// Every output and gradient as bits.
+fn all_bits(out: &RenderOutput<f32>, g: &GaussianGradients<f32>) -> Vec<u32> {
+    let mut v = bits(&out.features);
+    v.extend(bits(&out.alpha));
+    v.extend(bits(out.depth.as_deref().unwrap_or(&[])));
+    v.extend(bits(&geometry_gradients(g)));
+    v.extend(bits(&g.features));
+    v
+}
+
+/// Images and gradients bitwise equal with 1, 2 and 7 threads, and over two runs.
+#[test]
+fn deterministic_for_any_thread_count() {
+    let cam = camera(200, 130);
+    let scene = random_scene(20_000, 3, 77);
+    let img = image_grads(&cam, 3, 78);
+    let run = |threads| {
+        let pool = pool(threads);
+        let (out, state) = render(&pool, &scene, &cam, true);
+        let g = backward_in(&pool, &state, &output_grads(&img, true), true).unwrap();
+        all_bits(&out, &g)
+    };
+    let first = run(1);
+    for threads in [2, 7, 7, 2] {
+        assert!(
+            first == run(threads),
+            "{threads} threads differ from 1 thread"
+        );
+    }
+}
+
+fn widen(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| f64::from(x)).collect()
+}
+
+/// CPU and GPU gradients for the same random image gradients.
+fn cpu_and_gpu_gradients(
+    scene: &OwnedGaussians,
+    cam: &Camera,
+    depth: bool,
+) -> (GaussianGradients<f32>, GaussianGradients<f32>) {
+    use crate::splat::{backward as gpu_backward, forward as gpu_forward, Accumulation};
+    let pool = pool(2);
+    let (_, gpu_state) = gpu_forward(&scene.view(), cam, &options(scene.channels, depth)).unwrap();
+    let (_, cpu_state) = render(&pool, scene, cam, depth);
+    let img = image_grads(cam, scene.channels, 5);
+    let grads = output_grads(&img, depth);
+    let gpu = gpu_backward(&gpu_state, &grads, Accumulation::Auto, true).unwrap();
+    let cpu = backward_in(&pool, &cpu_state, &grads, true).unwrap();
+    (cpu, gpu)
+}
+
+/// The CPU executor and the GPU kernels agree as each agrees with the reference.
+#[test]
+fn cpu_matches_gpu() {
+    use crate::splat::{backward as gpu_backward, forward as gpu_forward, Accumulation};
+    let pool = pool(2);
+    for (n, seed, (w, h)) in [(3000usize, 51u64, (128, 96)), (20_000, 52, (160, 160))] {
+        let cam = camera(w, h);
+        for (channels, depth) in [(3usize, true), (11, false)] {
+            let scene = random_scene_sized(n, channels, seed, -4.5);
+            let opts = options(channels, depth);
+            let (gpu_out, gpu_state) = gpu_forward(&scene.view(), &cam, &opts).unwrap();
+            let (cpu_out, cpu_state) = render(&pool, &scene, &cam, depth);
+            let wide = |v: &[f32]| v.iter().map(|&x| f64::from(x)).collect::<Vec<f64>>();
+            let image = ImageError::of(&cpu_out.features, &wide(&gpu_out.features))
+                .worst(ImageError::of(&cpu_out.alpha, &wide(&gpu_out.alpha)));
+            let img = image_grads(&cam, channels, seed);
+            let grads = output_grads(&img, depth);
+            let gpu = gpu_backward(&gpu_state, &grads, Accumulation::Auto, true).unwrap();
+            let cpu = backward_in(&pool, &cpu_state, &grads, true).unwrap();
+            let rel = relative_l2(&geometry_gradients(&cpu), &wide(&geometry_gradients(&gpu)));
+            let rel_f = relative_l2(&cpu.features, &wide(&gpu.features));
+            eprintln!("cpu vs gpu n={n} C={channels}: image {image:?}, grads {rel:e} {rel_f:e}");
+            assert!(image.max <= 1e-4, "n={n}: image {image:?}");
+            assert!(
+                rel < 1e-4 && rel_f < 1e-4,
+                "n={n}: gradients {rel:e} {rel_f:e}"
+            );
+        }
+    }
+}
+
+/// Forward and backward finite everywhere (outputs start as NaN, so every pixel must be
+/// written); forward within the reference's bounds when `compare`.
+fn check_finite(
+    name: &str,
+    scene: &OwnedGaussians,
+    cam: &Camera,
+    compare: bool,
+) -> GaussianGradients<f32> {
+    let pool = pool(3);
+    let (out, state) = render(&pool, scene, cam, true);
+    let depth = out.depth.as_ref().unwrap();
+    assert!(
+        all_finite(&out.features) && all_finite(&out.alpha) && all_finite(depth),
+        "{name}: non-finite forward output"
+    );
+    if compare {
+        let reference =
+            reference::forward(&scene.view(), cam, &options(scene.channels, true)).unwrap();
+        let err = ImageError::of(&out.features, &reference.features)
+            .worst(ImageError::of(&out.alpha, &reference.alpha));
+        assert!(
+            err.within_flips(),
+            "{name}: forward differs from reference {err:?}"
+        );
+    }
+    let img = image_grads(cam, scene.channels, 7);
+    let g = backward_in(&pool, &state, &output_grads(&img, true), true).unwrap();
+    assert!(gradients_finite(&g), "{name}: non-finite gradient");
+    g
+}
+
+/// The hard cases of the GPU suite (splat/tests.rs hard_cases_stay_finite).
+#[test]
+fn hard_cases_stay_finite() {
+    let cam = origin_camera(40, 30);
+    let id = [1.0, 0.0, 0.0, 0.0];
+    let near = plain_scene(
+        3,
+        &[
+            ([0.0, 0.0, 0.01], id, -3.0, 2.0),
+            ([0.001, 0.0, 0.010_001], id, -5.0, 2.0),
+            ([0.0, 0.0, -1.0], id, -1.0, 2.0),
+            ([0.0, 0.0, 0.009], id, -1.0, 2.0),
+            ([0.1, 0.0, 2.0], id, -3.0, 0.0),
+        ],
+    );
+    let g = check_finite("near plane", &near, &cam, false);
+    for culled in [2, 3] {
+        assert_eq!(g.means[culled], [0.0; 3]);
+        assert_eq!(g.opacity_logits[culled], 0.0);
+    }
+
+    let mut non_finite = random_scene(40, 3, 21);
+    non_finite.means[3][1] = f32::NAN;
+    non_finite.quats[5][0] = f32::INFINITY;
+    non_finite.log_scales[7][2] = f32::NEG_INFINITY;
+    non_finite.features[8 * 3] = f32::NAN;
+    non_finite.log_scales[10] = [100.0; 3];
+    let g = check_finite("non-finite inputs", &non_finite, &camera(40, 30), false);
+    for culled in [3, 5, 7, 8, 10] {
+        assert_eq!(g.means[culled], [0.0; 3]);
+        assert_eq!(g.features[3 * culled..3 * culled + 3], [0.0; 3]);
+    }
+
+    let scales = plain_scene(
+        3,
+        &[
+            ([0.0, 0.0, 2.0], [0.3, 0.1, 0.2, 0.9], 1e-7f32.ln(), 1.0),
+            ([0.05, 0.0, 2.0], [0.3, 0.1, 0.2, 0.9], 1e3f32.ln(), 1.0),
+            ([0.0, 0.05, 0.02], [0.7, 0.1, 0.2, 0.1], 1e3f32.ln(), 1.0),
+        ],
+    );
+    check_finite("extreme scales", &scales, &cam, true);
+
+    let quats = plain_scene(
+        3,
+        &[
+            ([0.0, 0.0, 2.0], [0.0; 4], -2.5, 1.0),
+            ([0.02, 0.0, 2.0], [1e-30, 0.0, 0.0, 0.0], -2.5, 1.0),
+        ],
+    );
+    let g = check_finite("zero quaternion", &quats, &cam, true);
+    assert_eq!(g.quats[0], [0.0; 4]);
+    assert!(g.means[0].iter().any(|&v| v != 0.0));
+
+    let logits = plain_scene(
+        11,
+        &[
+            ([0.0, 0.0, 2.0], id, -2.5, 50.0),
+            ([0.01, 0.0, 2.5], id, -2.5, -50.0),
+            ([0.0, 0.01, 3.0], id, -2.5, 50.0),
+        ],
+    );
+    check_finite("opacity logits +-50", &logits, &cam, true);
+
+    let stacked: Vec<_> = (0..10_000)
+        .map(|k| ([0.0, 0.0, 2.0 + k as f32 * 1e-3], id, -4.0, 0.5))
+        .collect();
+    check_finite(
+        "10k stacked on one pixel",
+        &plain_scene(3, &stacked),
+        &cam,
+        true,
+    );
+
+    let mut off = random_scene(500, 3, 11);
+    for m in &mut off.means {
+        m[0] += 100.0;
+    }
+    let g = check_finite("all off-screen", &off, &cam, true);
+    assert!(g.features.iter().all(|&v| v == 0.0));
+
+    check_finite("no Gaussians", &OwnedGaussians::new(3), &cam, true);
+    check_finite("1x1 image", &random_scene(200, 3, 12), &camera(1, 1), true);
+    check_finite(
+        "1000x700 image",
+        &random_scene(3000, 3, 13),
+        &camera(1000, 700),
+        true,
+    );
+    check_finite(
+        "odd 37x23 image",
+        &random_scene(500, 3, 14),
+        &camera(37, 23),
+        true,
+    );
+}
+
+/// Needles at random angles: the row test must not drop a pixel the ellipse reaches.
+#[test]
+fn needles_match_reference() {
+    let mut scene = random_scene_sized(300, 3, 31, -3.5);
+    for s in &mut scene.log_scales {
+        *s = [s[0] + 1.7, s[1] - 1.7, s[2] - 1.7];
+    }
+    for l in &mut scene.opacity_logits {
+        *l += 2.0;
+    }
+    for depth in [false, true] {
+        let (image, depth_err) = forward_errors(&scene, &camera(90, 70), depth);
+        for (what, e) in [("image", image), ("depth", depth_err)] {
+            assert!(e.max <= 1e-4, "depth={depth}: {what} error {e:?}");
+        }
+        // f32 itself is ~1e-3 off the f64 gradients of needles (the GPU's too), and the two
+        // f32 executors differ by ~2e-4 (sums in another order): bound the agreement at 1e-3.
+        let (cpu, gpu) = cpu_and_gpu_gradients(&scene, &camera(90, 70), depth);
+        let rel = relative_l2(&geometry_gradients(&cpu), &widen(&geometry_gradients(&gpu)));
+        assert!(rel < 1e-3, "needles: cpu vs gpu gradients {rel:e}");
+    }
+}
+
+/// Large opaque Gaussians: rows stop early, and the backward replays each row's own prefix.
+#[test]
+fn saturated_scene_matches_reference() {
+    let mut scene = random_scene_sized(600, 3, 41, -2.0);
+    for l in &mut scene.opacity_logits {
+        *l += 5.0;
+    }
+    let cam = camera(90, 70);
+    let (image, depth_err) = forward_errors(&scene, &cam, true);
+    for (what, e) in [("image", image), ("depth", depth_err)] {
+        assert!(e.max <= 1e-4, "{what} error {e:?}");
+    }
+    let (cpu, reference) = gradients(&scene, &cam, true);
+    let errors = gradient_errors(&cpu, &reference);
+    eprintln!("cpu saturated gradients: {errors:?}");
+    assert!(errors.iter().all(|&e| e < 1e-3), "{errors:?}");
+}
+
+/// Row culling skips work: on small splats far fewer evaluations than tile pixels x pairs,
+/// and every contribution is one of them.
+#[test]
+fn row_test_skips_most_evaluations() {
+    let cam = camera(128, 128);
+    let scene = random_scene_sized(20_000, 3, 61, -5.5);
+    let (_, state) = render(&pool(2), &scene, &cam, false);
+    let s = state.stats;
+    eprintln!("{s:?}");
+    assert!(s.contributions > 0 && s.contributions <= s.evaluations);
+    assert!(s.evaluations * 2 < s.pairs * 64, "{s:?}");
+}
