@@ -86,8 +86,13 @@ def test_link_meshes_are_in_the_link_frame_with_one_file_per_convex_piece(export
         assert len(collisions) == 1  # a box is convex: one piece, itself
         piece = trimesh.load(exported.urdf.parent / collisions[0].find("geometry/mesh")
                              .get("filename"), force="mesh")
-        assert piece.is_convex and piece.volume == pytest.approx(np.prod(hi - lo), rel=1e-6)
-        np.testing.assert_allclose(piece.bounds + FRAMES[name], [lo, hi], atol=1e-9)
+        assert piece.is_convex
+        if name == "base":  # cut back by the clearance where the door and drawer slide on it
+            assert 0.97 * np.prod(hi - lo) <= piece.volume < np.prod(hi - lo)
+            assert np.all(piece.bounds[0] >= lo - 1e-9) and np.all(piece.bounds[1] <= hi + 1e-9)
+        else:  # moving parts keep their exact pieces
+            assert piece.volume == pytest.approx(np.prod(hi - lo), rel=1e-6)
+            np.testing.assert_allclose(piece.bounds + FRAMES[name], [lo, hi], atol=1e-9)
         visual = link.find("visual/geometry/mesh").get("filename")
         text = (exported.urdf.parent / visual).read_text()
         assert "\nvn " in text  # normals
@@ -106,25 +111,43 @@ def test_visual_colours_come_from_the_gaussians(exported):
 def test_inertia_of_a_box_link_at_the_default_density(exported):
     from gear.export import defaults
 
-    base = ET.parse(exported.urdf).getroot().find("link[@name='base']/inertial")
-    lo, hi = _box(0)
+    drawer = ET.parse(exported.urdf).getroot().find("link[@name='part_1']/inertial")
+    lo, hi = _box(2)
     a, b, c = hi - lo
     mass = defaults.DENSITY * a * b * c
-    assert float(base.find("mass").get("value")) == pytest.approx(mass, rel=1e-6)
-    np.testing.assert_allclose(_floats(base.find("origin").get("xyz")), (lo + hi) / 2, atol=1e-9)
-    inertia = base.find("inertia")
+    assert float(drawer.find("mass").get("value")) == pytest.approx(mass, rel=1e-6)
+    np.testing.assert_allclose(_floats(drawer.find("origin").get("xyz")),
+                               (lo + hi) / 2 - FRAMES["part_1"], atol=1e-9)
+    inertia = drawer.find("inertia")
     want = {"ixx": mass * (b * b + c * c) / 12, "iyy": mass * (a * a + c * c) / 12,
             "izz": mass * (a * a + b * b) / 12, "ixy": 0.0, "ixz": 0.0, "iyz": 0.0}
     for key, value in want.items():
         assert float(inertia.get(key)) == pytest.approx(value, rel=1e-6, abs=1e-9)
 
 
+def test_static_pieces_are_cut_back_where_the_parts_move(exported):
+    """The toy's door stands on the top face of the static box and its drawer slides along the
+    bottom face: the static piece loses a clearance-thin slice there, nothing else."""
+    from gear.export.assembly import CLEARANCE
+
+    base = exported.assembly.links[0].pieces[0]
+    lo, hi = _box(0)
+    size = np.linalg.norm(np.ptp(np.concatenate([_box(k) for k in range(3)]), axis=0))
+    gap = CLEARANCE * size
+    shift = np.array([0.0, 0.0, gap])
+    np.testing.assert_allclose(base.bounds, [lo + shift, hi - shift], atol=1e-9)
+    assert any("plane cut(s)" in note for note in exported.notes)
+
+
 def test_total_mass_is_spread_by_volume_and_limits_widen(out_dir, tmp_path):
     result = export_twin(out_dir, tmp_path / "u", options=ExportOptions(mass=30.0, widen=0.1),
                          quiet=True)
-    volumes = np.array([np.prod(np.subtract(hi, lo)) for lo, hi in BOXES])
+    volumes = np.array([link.inertial.volume for link in result.assembly.links])
     masses = np.array([link.inertial.mass for link in result.assembly.links])
-    np.testing.assert_allclose(masses, 30.0 * volumes / volumes.sum(), rtol=1e-6)
+    np.testing.assert_allclose(masses, 30.0 * volumes / volumes.sum(), rtol=1e-9)
+    assert masses.sum() == pytest.approx(30.0)
+    np.testing.assert_allclose(volumes[1:], [np.prod(np.subtract(hi, lo)) for lo, hi in BOXES[1:]],
+                               rtol=1e-6)
     hinge = result.assembly.joints[0]
     full = np.deg2rad(HINGE["angle_deg"])
     assert (hinge.lower, hinge.upper, hinge.end) == pytest.approx((-0.1 * full, 1.1 * full, full))

@@ -17,6 +17,7 @@ import trimesh
 
 from gear.data.scene import GtJoint
 from gear.export import defaults
+from gear.export.clearance import clear_joint_paths
 from gear.export.collision import convex_pieces
 from gear.export.inertials import (
     Inertial,
@@ -30,6 +31,7 @@ from gear.export.source import EXPORT_STATE, RunSource
 from gear.twin import TwinJoint
 
 BASE_LINK = "base"
+CLEARANCE = 1e-3  # gap left between moving and static collision pieces, x the object's size
 
 
 @dataclass
@@ -132,6 +134,16 @@ def build_assembly(run: RunSource, name: str, options: ExportOptions,
                                        part.opacity))
             pieces.append(convex_pieces(part.mesh, options.concavity, options.max_pieces))
         progress(part.name)
+    joints = [_joint(j, options) for j in run.joints]
+    notes = list(run.notes)
+    if pieces[0] and joints:
+        everything = [m for m in (p.mesh for p in run.parts) if m is not None]
+        size = float(np.linalg.norm(np.ptp(np.concatenate([m.vertices for m in everything]), 0)))
+        pieces[0], cuts = clear_joint_paths(pieces[0], list(zip(joints, pieces[1:], strict=True)),
+                                            CLEARANCE * size)
+        if cuts:
+            notes.append(f"base: {cuts} plane cut(s) of its collision pieces clear the moving "
+                         "parts' paths")
     volumes = [sum(p.volume for p in ps) for ps in pieces]
     density = link_density(volumes, options.density, options.mass)
     links = []
@@ -143,5 +155,4 @@ def build_assembly(run: RunSource, name: str, options: ExportOptions,
                 if visual is not None else np.array([0.6, 0.6, 0.6, 1.0]))
         links.append(Link(BASE_LINK if k == 0 else part.name, part.name, frames[k], visual,
                           pieces[k], inertial, rgba))
-    joints = [_joint(j, options) for j in run.joints]
-    return Assembly(name, links, joints, EXPORT_STATE, density, list(run.notes))
+    return Assembly(name, links, joints, EXPORT_STATE, density, notes)

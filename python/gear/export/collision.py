@@ -9,8 +9,8 @@ import trimesh
 
 from gear.export import defaults
 
-DECOMPOSE_FACES = 8000  # a component is simplified to this many faces first: CoACD's time
-# grows with the face count
+DECOMPOSE_FACES = 2000  # a component is simplified to this many faces first: CoACD's time
+# grows with the face count, and 2000 faces still hold a cabinet's walls and shelves
 CONVEX_ENOUGH = 0.97  # a closed component filling this much of its hull is taken as convex
 MIN_PIECE_VOLUME = 1e-12
 
@@ -57,8 +57,11 @@ def _decompose(mesh: trimesh.Trimesh, concavity: float, max_pieces: int,
     parts = coacd.run_coacd(
         coacd.Mesh(small.vertices.astype(np.float64), small.faces.astype(np.int64)),
         threshold=concavity, max_convex_hull=max_pieces,
-        preprocess_mode="off" if small.is_watertight else "on", preprocess_resolution=100,
-        resolution=2000, mcts_iterations=100, mcts_max_depth=3, merge=True, seed=seed,
+        preprocess_mode="off" if small.is_watertight else "on", preprocess_resolution=40,
+        # A shallower, narrower search than CoACD's defaults: 5-10x faster on a TSDF cabinet
+        # for a few more pieces.
+        resolution=500, mcts_iterations=20, mcts_nodes=10, mcts_max_depth=2, merge=True,
+        seed=seed,
     )
     return [h for h in (_hull(np.asarray(v, dtype=np.float64)) for v, _ in parts)
             if h is not None]
