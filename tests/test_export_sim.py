@@ -139,6 +139,8 @@ def test_trained_twin_is_simulation_ready(tmp_path):
     for got, floor in _fk_chamfers(run, result):
         # Trained meshes are fused separately per state, so the start-state mesh carried to
         # the end differs from the end-state one by the reconstruction's own noise.
-        assert got <= 3.0 * floor + 1.0, (got, floor)
+        assert got <= 3.0 * floor, (got, floor)
+    # Coarser pieces fill more of the hollow body, so this export weighs more than a default
+    # one (about 110 kg); a tonne, as hulls gave, would fail.
     masses = [link.inertial.mass for link in result.assembly.links]
-    assert math.isfinite(sum(masses)) and 10.0 <= sum(masses) <= 150.0
+    assert math.isfinite(sum(masses)) and 10.0 <= sum(masses) <= 250.0
