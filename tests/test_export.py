@@ -305,3 +305,18 @@ def test_export_command_reports_masses_state_and_round_trip(out_dir, tmp_path, c
     assert "round-trip check: gear's URDF reader gives the same joints" in printed
     assert (tmp_path / "u" / "toy.urdf").is_file() and (tmp_path / "m" / "toy.xml").is_file()
     assert not (tmp_path / "u" / "toy.xml").exists()
+
+
+def test_a_part_with_an_empty_mesh_gets_a_light_link_without_geometry(out_dir, tmp_path):
+    mujoco = pytest.importorskip("mujoco")
+    run = tmp_path / "run"
+    shutil.copytree(out_dir, run)
+    trimesh.Trimesh().export(run / "meshes" / "start" / "part_1.ply")
+    folder = tmp_path / "u"
+    result = export_twin(run, folder, folder, name="toy", quiet=True)
+    drawer = result.assembly.links[2]
+    assert drawer.visual is None and drawer.pieces == [] and drawer.inertial.mass == 1e-3
+    assert any("part_1: its mesh is empty" in note for note in result.notes)
+    assert ET.parse(result.urdf).getroot().find("link[@name='part_1']/collision") is None
+    model = mujoco.MjModel.from_xml_path(str(result.mjcf))  # a massless body would be refused
+    assert model.body("part_1").mass[0] == pytest.approx(1e-3)

@@ -114,7 +114,8 @@ def _joint(j: TwinJoint, options: ExportOptions) -> Joint:
     i = j.part - 1
     end = math.radians(j.amount) if j.type == "revolute" else j.amount
     margin = options.widen * end
-    return Joint(f"joint_{i}", f"part_{i}", j.type, j.origin, j.axis, -margin, end + margin, end,
+    lower = 0.0 - margin  # not -margin: -0.0 would print as "-0"
+    return Joint(f"joint_{i}", f"part_{i}", j.type, j.origin, j.axis, lower, end + margin, end,
                  options.damping, options.friction, options.effort, options.velocity)
 
 
