@@ -30,7 +30,7 @@ def joint_name(model: mujoco.MjModel, j: int) -> str:
 
 @dataclass
 class Drift:
-    largest: float  # largest |joint value| reached (rad or m)
+    largest: dict[str, float]  # joint name -> largest |value| reached (rad or m)
     inside_limits: bool
 
 
@@ -38,13 +38,15 @@ def drift(model: mujoco.MjModel, seconds: float = 1.0) -> Drift:
     """Gravity off, no actuation, every joint at 0: how far the joints move in `seconds`."""
     model.opt.gravity[:] = 0.0
     data = mujoco.MjData(model)
-    largest, inside = 0.0, True
+    largest = {joint_name(model, j): 0.0 for j in joint_ids(model)}
+    inside = True
     for _ in range(round(seconds / model.opt.timestep)):
         mujoco.mj_step(model, data)
         for j in joint_ids(model):
             q = float(data.qpos[model.jnt_qposadr[j]])
             lo, hi = model.jnt_range[j]
-            largest = max(largest, abs(q))
+            name = joint_name(model, j)
+            largest[name] = max(largest[name], abs(q))
             inside &= lo - 1e-6 <= q <= hi + 1e-6
     return Drift(largest, inside)
 
@@ -80,35 +82,41 @@ def _colliding_geoms(model: mujoco.MjModel) -> tuple[list[int], list[int]]:
 
 @dataclass
 class Drive:
-    reached: list[float]  # joint values at the end of the drive
-    targets: list[float]
-    deepest: float  # deepest moving-vs-static penetration seen (>= 0)
+    upper: list[float]  # joint values after the servo held the upper limits (actuator order)
+    lower: list[float]  # and after it came back and held the lower limits
+    limits: list[tuple[float, float]]
+    deepest: float  # deepest moving-vs-static penetration seen on the way (>= 0)
 
 
-def drive_to_limits(model: mujoco.MjModel, upper: bool, ramp: float = 2.0, hold: float = 1.0,
-                    every: int = 10) -> Drive:
-    """Position servos move every joint from 0 to its upper (or lower) limit over `ramp` s and
-    hold it `hold` s, gravity off; penetration is measured every `every` steps."""
+def drive_through_range(model: mujoco.MjModel, ramp: float = 2.0, hold: float = 1.0,
+                        every: int = 10) -> Drive:
+    """Position servos move every joint from 0 to its upper limit over `ramp` s, hold it
+    `hold` s, then go to the lower limit and hold it, gravity off; the penetration is measured
+    every `every` steps."""
     model.opt.gravity[:] = 0.0
     data = mujoco.MjData(model)
     moving, static = _colliding_geoms(model)
-    targets = [float(model.jnt_range[model.actuator_trnid[a, 0], 1 if upper else 0])
-               for a in range(model.nu)]
+    joints = [model.actuator_trnid[a, 0] for a in range(model.nu)]
+    limits = [(float(model.jnt_range[j, 0]), float(model.jnt_range[j, 1])) for j in joints]
     fromto = np.zeros(6)
     deepest = 0.0
     steps = round((ramp + hold) / model.opt.timestep)
-    for k in range(steps):
-        s = min(1.0, k * model.opt.timestep / ramp)
-        data.ctrl[:] = [s * t for t in targets]
-        mujoco.mj_step(model, data)
-        if k % every == 0 or k == steps - 1:
-            for g1 in moving:
-                for g2 in static:
-                    d = mujoco.mj_geomDistance(model, data, g1, g2, 0.05, fromto)
-                    deepest = max(deepest, -d)
-    reached = [float(data.qpos[model.jnt_qposadr[model.actuator_trnid[a, 0]]])
-               for a in range(model.nu)]
-    return Drive(reached, targets, deepest)
+    reached = []
+    start = np.zeros(model.nu)
+    for side in (1, 0):  # upper, then lower
+        goal = np.array([lim[side] for lim in limits])
+        for k in range(steps):
+            s = min(1.0, k * model.opt.timestep / ramp)
+            data.ctrl[:] = start + s * (goal - start)
+            mujoco.mj_step(model, data)
+            if k % every == 0 or k == steps - 1:
+                for g1 in moving:
+                    for g2 in static:
+                        d = mujoco.mj_geomDistance(model, data, g1, g2, 0.05, fromto)
+                        deepest = max(deepest, -d)
+        reached.append([float(data.qpos[model.jnt_qposadr[j]]) for j in joints])
+        start = goal
+    return Drive(reached[0], reached[1], limits, deepest)
 
 
 def link_pose(model: mujoco.MjModel, body: str, values: dict[str, float]) -> np.ndarray:
