@@ -32,7 +32,6 @@ class RunSource:
     """A trained run read for export: the twin (canonical Gaussians), its joints with
     non-negative amounts, and every part in the start state."""
 
-    out_dir: Path
     twin: Twin
     joints: list[TwinJoint]  # joints[i] moves parts[i + 1]
     parts: list[PartSource]
@@ -98,4 +97,4 @@ def load_run(out_dir: str | Path) -> RunSource:
             notes.append(f"{name}: its mesh is empty, the link has no visual, collision or mass")
         rows = np.flatnonzero(ids == k)
         parts.append(PartSource(name, mesh, means_np[rows], rgb[rows], opacity[rows], rows))
-    return RunSource(out_dir, twin, joints, parts, notes)
+    return RunSource(twin, joints, parts, notes)
