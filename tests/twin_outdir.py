@@ -1,9 +1,10 @@
-"""A hand-made trained OUT_DIR shared by the twin and export tests.
+"""Hand-made trained OUT_DIRs shared by the twin and export tests: a toy of boxes, and the
+ground truth of a built-in object (`make_gt_out_dir`).
 
-Three parts around the origin: a static box (part 0, blue), a door (part 1, red) hinged on a
-vertical axis at one edge of the box, turning 70 degrees, and a drawer (part 2, green) sliding
-0.2 along +x. The canonical Gaussians go through the trainer's own PLY writer, so the twin
-reads exactly what training writes.
+The toy (`make_out_dir`): three parts around the origin, a static box (part 0, blue), a
+door (part 1, red) hinged on a vertical axis at one edge of the box, turning 70 degrees, and a
+drawer (part 2, green) sliding 0.2 along +x. The canonical Gaussians go through the trainer's
+own PLY writer, so the twin reads exactly what training writes.
 """
 
 from __future__ import annotations
@@ -111,3 +112,56 @@ def front_camera(res: int = 48) -> Camera:
     """A camera above the door side (-y), seeing the whole object and the door swing."""
     return Camera.look_at(np.array([0.0, -1.2, 1.8]), np.zeros(3), np.array([0.0, 0.0, 1.0]),
                           np.deg2rad(45.0), res, res)
+
+
+def make_gt_out_dir(root: Path, object_name: str, seed: int = 0,
+                    gaussians_per_part: int = 3000) -> Path:
+    """A run folder built from the ground truth of the built-in object `object_name`: its exact
+    joints, its GT part meshes as meshes/{start,end}/*.ply, and Gaussians sampled on the
+    start-state surfaces with the surfaces' colours (canonical state: start)."""
+    from gear.synth.objects import build
+
+    obj = build(object_name, seed)
+    rng = np.random.default_rng(seed)
+    means, colors, parts = [], [], []
+    for k, surfaces in enumerate(obj.posed("start")):
+        mesh = trimesh.util.concatenate([trimesh.Trimesh(s.vertices, s.faces, process=False)
+                                         for s in surfaces])
+        face_colors = np.concatenate([s.colors for s in surfaces])
+        points, faces = trimesh.sample.sample_surface(mesh, gaussians_per_part, seed=seed + k)
+        means.append(points)
+        colors.append(face_colors[faces])
+        parts.append(np.full(len(points), k))
+    means_np, parts_np = np.concatenate(means), np.concatenate(parts)
+    rgb = np.clip(np.concatenate(colors), 0.02, 0.98)
+    n = len(means_np)
+    logits = np.full((n, len(obj.parts) + 1), -5.0)
+    logits[np.arange(n), parts_np] = 5.0
+    quats = rng.normal(size=(n, 4))
+    g = Gaussians({
+        "means": torch.tensor(means_np, dtype=torch.float32),
+        "quats": torch.tensor(quats / np.linalg.norm(quats, axis=1, keepdims=True),
+                              dtype=torch.float32),
+        "log_scales": torch.full((n, 3), float(np.log(0.006))),
+        "opacity": torch.full((n,), 4.0),
+        "colors": torch.tensor(np.log(rgb / (1 - rgb)), dtype=torch.float32),
+        "logits": torch.tensor(logits, dtype=torch.float32),
+    })
+    root.mkdir(parents=True, exist_ok=True)
+    write_ply(root / "gaussians_canonical.ply", g)
+    np.save(root / "parts.npy", parts_np.astype(np.int64))
+    joints = []
+    for k, part in enumerate(obj.parts, start=1):
+        gt = part.joint.gt()
+        joints.append({"part": k, "type": gt.type, "axis": gt.axis.tolist(),
+                       "origin": gt.origin.tolist(),
+                       "angle_deg": gt.amount if gt.type == "revolute" else 0.0,
+                       "distance": gt.amount if gt.type == "prismatic" else 0.0})
+    (root / "joints.json").write_text(json.dumps({"canonical": "start", "joints": joints},
+                                                 indent=2))
+    for state in ("start", "end"):
+        folder = root / "meshes" / state
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, mesh in obj.gt_meshes(state).items():
+            mesh.export(folder / f"{name}.ply")
+    return root

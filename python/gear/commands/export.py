@@ -1,47 +1,87 @@
-"""`gear export OUT_DIR --urdf DIR`: the trained twin as a URDF for robotics (docs/export.md)."""
+"""`gear export OUT_DIR --urdf DIR --mjcf DIR`: the trained twin as simulation-ready models
+(docs/export.md)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from gear.export import defaults
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="write the trained twin as a URDF (links, joints, meshes)")
+    p = sub.add_parser("export", help="write the trained twin as URDF / MJCF for simulators, "
+                                      "plus a GLB per state and a Gaussian PLY per part")
     p.add_argument("out_dir", type=Path, help="a trained run's output folder")
-    p.add_argument("--urdf", type=Path, required=True, metavar="DIR",
-                   help="folder to write <name>.urdf and meshes/*.obj into")
-    p.add_argument("--name", default=None, help="robot name (default: OUT_DIR's folder name)")
-    p.add_argument("--density", type=float, default=1000.0,
-                   help="density for link masses, per cubic scene unit (default 1000: water "
-                        "in kg/m^3 when the scene is in metres)")
-    p.add_argument("--effort", type=float, default=100.0,
-                   help="joint effort limit written to every joint (default 100)")
-    p.add_argument("--velocity", type=float, default=1.0,
-                   help="joint velocity limit written to every joint (default 1)")
+    p.add_argument("--urdf", type=Path, metavar="DIR", help="folder for NAME.urdf and its files")
+    p.add_argument("--mjcf", type=Path, metavar="DIR",
+                   help="folder for NAME.xml (MuJoCo) and its files (may be the --urdf folder)")
+    p.add_argument("--name", default=None, help="model name (default: OUT_DIR's folder name)")
+    p.add_argument("--faces", type=int, default=defaults.FACES,
+                   help=f"visual mesh faces per link (default {defaults.FACES})")
+    mass = p.add_mutually_exclusive_group()
+    mass.add_argument("--density", type=float, default=None,
+                      help=f"kg per cubic scene unit for link masses (default {defaults.DENSITY:g},"
+                           " for scenes in metres)")
+    mass.add_argument("--mass", type=float, default=None,
+                      help="total mass in kg, spread over the links by volume")
+    p.add_argument("--widen", type=float, default=0.0, metavar="FRACTION",
+                   help="widen each joint's limits past the observed start and end by this "
+                        "fraction of the observed range (default 0)")
+    p.add_argument("--damping", type=float, default=defaults.DAMPING,
+                   help=f"joint damping, N*m*s/rad or N*s/m (default {defaults.DAMPING:g})")
+    p.add_argument("--friction", type=float, default=defaults.FRICTION,
+                   help=f"joint friction, N*m or N (default {defaults.FRICTION:g})")
+    p.add_argument("--effort", type=float, default=defaults.EFFORT,
+                   help=f"URDF joint effort limit (default {defaults.EFFORT:g})")
+    p.add_argument("--velocity", type=float, default=defaults.VELOCITY,
+                   help=f"URDF joint velocity limit (default {defaults.VELOCITY:g})")
+    p.add_argument("--concavity", type=float, default=defaults.CONCAVITY,
+                   help="convex decomposition tolerance, a fraction of the part's size "
+                        f"(default {defaults.CONCAVITY:g}; smaller = more, tighter pieces)")
+    p.add_argument("--max-pieces", type=int, default=defaults.MAX_PIECES,
+                   help=f"convex pieces per link at most (default {defaults.MAX_PIECES})")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from gear.export import export_urdf, roundtrip_errors
+    from gear.export.assembly import ExportOptions
+    from gear.export.bundle import export_twin
+    from gear.export.urdf import roundtrip_errors
 
-    result = export_urdf(args.out_dir, args.urdf, name=args.name, density=args.density,
-                         effort=args.effort, velocity=args.velocity)
+    options = ExportOptions(
+        faces=args.faces, density=args.density, mass=args.mass, widen=args.widen,
+        damping=args.damping, friction=args.friction, effort=args.effort,
+        velocity=args.velocity, concavity=args.concavity, max_pieces=args.max_pieces)
+    result = export_twin(args.out_dir, args.urdf, args.mjcf, name=args.name, options=options,
+                         quiet=args.quiet)
     for note in result.notes:
         print(f"note: {note}")
-    print(f"wrote {result.urdf} ({len(result.joints)} joint(s))")
-    for j in result.joints:
-        amount = f"{j.amount:.2f} deg" if j.type == "revolute" else f"{j.amount:.4f}"
-        print(f"  joint_{j.part - 1}: {j.type}, axis {j.axis.round(4).tolist()}, "
-              f"through {j.origin.round(4).tolist()}, 0 -> {amount}")
+    a = result.assembly
+    for path in (result.urdf, result.mjcf):
+        if path is not None:
+            print(f"wrote {path}")
+    print(f"every file holds the twin in its {a.state} state (joint value 0); "
+          f"density {a.density:.4g} kg per cubic unit; {result.seconds:.1f} s")
+    for link in a.links:
+        faces = 0 if link.visual is None else len(link.visual.faces)
+        print(f"  {link.name}: {link.inertial.mass:.3g} kg, {faces} visual faces, "
+              f"{len(link.pieces)} convex pieces")
+    for j in a.joints:
+        unit = "rad" if j.type == "revolute" else "units"
+        print(f"  {j.name}: {j.type}, axis {j.axis.round(4).tolist()}, through "
+              f"{j.origin.round(4).tolist()}, limits [{j.lower:.4g}, {j.upper:.4g}] {unit}, "
+              f"observed end {j.end:.4g}")
+    if result.urdf is None:
+        return 0
     try:
-        errors = roundtrip_errors(result)
+        errors = roundtrip_errors(result.urdf, a)
     except ValueError as err:  # e.g. a moving link without geometry, which the reader refuses
         print(f"round-trip check skipped: gear's URDF reader refused the file ({err})")
         return 0
-    if errors:
-        for e in errors:
-            print(f"round-trip check: {e}")
-        return 1
-    print("round-trip check: gear's URDF reader gives the same joints")
-    return 0
+    for e in errors:
+        print(f"round-trip check: {e}")
+    if not errors:
+        print("round-trip check: gear's URDF reader gives the same joints")
+    return 1 if errors else 0
