@@ -9,8 +9,8 @@ import torch
 
 from gear.export.assembly import Assembly
 from gear.export.source import RunSource
-from gear.model import Gaussians
 from gear.outputs import write_ply
+from gear.splats import Gaussians
 
 SPLAT_FOLDER = "splats"
 RGB_LIMIT = 1e-4  # write_ply stores colours through a logit: keep them off 0 and 1
