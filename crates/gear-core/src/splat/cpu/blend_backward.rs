@@ -144,6 +144,18 @@ impl TileBuffers {
     }
 }
 
+/// All ones where `condition` holds, else zero.
+#[inline(always)]
+fn mask(condition: bool) -> u32 {
+    u32::from(condition).wrapping_neg()
+}
+
+/// `value` where `mask` is all ones, +0 where it is zero.
+#[inline(always)]
+fn masked(value: f32, mask: u32) -> f32 {
+    f32::from_bits(value.to_bits() & mask)
+}
+
 /// The eight lanes summed as a fixed tree (vectorises; the same order every time).
 fn lane_sum(v: &Lanes) -> f32 {
     ((v[0] + v[4]) + (v[2] + v[6])) + ((v[1] + v[5]) + (v[3] + v[7]))
@@ -246,8 +258,11 @@ fn replay_tile(
             let (row, st) = (&rows[r], &mut state[r]);
             let dy = row.cy - s.v;
             let e = evaluate(s, &row.xs, dy);
-            let hit: [bool; LANES] = std::array::from_fn(|i| k < st.consumed[i] && e.passes[i]);
-            if !hit.iter().any(|&h| h) {
+            // Lane masks are all-ones or zero u32s, applied with a bitwise and: bool arrays
+            // and per-lane branches would compile to scalar code.
+            let hit: [u32; LANES] =
+                std::array::from_fn(|i| mask(k < st.consumed[i] && e.passes[i]));
+            if !hit.iter().any(|&h| h != 0) {
                 continue;
             }
             if !touched {
@@ -268,7 +283,7 @@ fn replay_tile(
             }
             // The blended lanes' weights, zero elsewhere: the sums below multiply by them
             // instead of branching per lane, which keeps them vector adds.
-            let w_hit: Lanes = std::array::from_fn(|i| if hit[i] { w[i] } else { 0.0 });
+            let w_hit: Lanes = std::array::from_fn(|i| masked(w[i], hit[i]));
             let sums = &mut buffers.sums;
             for (c, &fc) in f.iter().enumerate() {
                 // Whole-row copies and one loop per update: the form the compiler keeps in
@@ -297,10 +312,13 @@ fn replay_tile(
                     st.behind_d[i] += w_hit[i] * s.z;
                 }
             }
-            // The 0.999 clamp passes no gradient to opacity and power. Term by term over the
-            // lanes (not lane by lane), so that each sum is one vector add.
-            let unclamped: [bool; LANES] =
-                std::array::from_fn(|i| hit[i] && e.raw[i] <= MAX_ALPHA as f32);
+            // The 0.999 clamp passes no gradient to opacity and power: dL/dalpha is zeroed on
+            // clamped and unblended lanes first (every factor below is finite, so their terms
+            // are zeros), then the terms are summed over the lanes term by term (not lane by
+            // lane), so that each sum is one vector add.
+            let unclamped: [u32; LANES] =
+                std::array::from_fn(|i| hit[i] & mask(e.raw[i] <= MAX_ALPHA as f32));
+            let grad_a: Lanes = std::array::from_fn(|i| masked(grad_a[i], unclamped[i]));
             let gp: Lanes = std::array::from_fn(|i| grad_a[i] * e.alpha[i]);
             let dx = &e.dx;
             let terms: [Lanes; 6] = [
@@ -311,13 +329,15 @@ fn replay_tile(
                 std::array::from_fn(|i| (s.b * dx[i] + s.c * dy) * gp[i]),
                 std::array::from_fn(|i| grad_a[i] * e.gauss[i]),
             ];
-            for (sum, term) in sums.iter_mut().zip(&terms) {
+            // A fixed-size view, so the adds compile to whole-row vector adds.
+            let geometry: &mut [Lanes; 6] = (&mut sums[..6]).try_into().unwrap();
+            for (sum, term) in geometry.iter_mut().zip(&terms) {
                 for i in 0..LANES {
-                    sum[i] += if unclamped[i] { term[i] } else { 0.0 };
+                    sum[i] += term[i];
                 }
             }
             for i in 0..LANES {
-                st.t[i] = if hit[i] { t_i[i] } else { st.t[i] };
+                st.t[i] = if hit[i] != 0 { t_i[i] } else { st.t[i] };
             }
         }
         // Each pair's record is written once, its rows summed lane-wise in row order first.
