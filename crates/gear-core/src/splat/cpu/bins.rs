@@ -57,17 +57,23 @@ impl Splat {
         }
     }
 
-    /// Whether the Gaussian can reach a pixel of the row at `dy` (pixel centre y minus v)
-    /// whose pixel centres span [x_lo, x_hi]: a few flops and compares, before any exp.
+    /// Bit r set where the Gaussian can reach a pixel of tile row r (pixel-centre y = `y0` +
+    /// r) whose pixel centres span [x_lo, x_hi]: a few flops and compares per row, before any
+    /// exp, for all TILE rows at once (one SIMD row, no branch).
     #[inline(always)]
-    pub fn meets_row(&self, dy: f32, x_lo: f32, x_hi: f32) -> bool {
-        let room = self.reach - dy * dy;
-        if room.is_nan() || room < 0.0 {
-            return false;
-        }
-        let half = (room * self.span).sqrt() + SPAN_SLACK;
-        let centre = self.u + self.slope * dy;
-        centre + half >= x_lo && centre - half <= x_hi
+    pub fn row_mask(&self, y0: f32, x_lo: f32, x_hi: f32) -> u32 {
+        let meets: [bool; TILE as usize] = std::array::from_fn(|r| {
+            let dy = (y0 + r as f32) - self.v;
+            let room = self.reach - dy * dy;
+            let half = (room.max(0.0) * self.span).sqrt() + SPAN_SLACK;
+            let centre = self.u + self.slope * dy;
+            // NaN (a culled or degenerate entry) fails every compare.
+            room >= 0.0 && centre + half >= x_lo && centre - half <= x_hi
+        });
+        meets
+            .iter()
+            .enumerate()
+            .fold(0, |mask, (r, &m)| mask | (u32::from(m) << r))
     }
 }
 
@@ -143,10 +149,12 @@ pub(super) struct Bins {
     /// depth order).
     pub tile_offsets: Vec<u32>,
     pub entries: Vec<u32>,
-    /// Gaussian g's pairs are at `entries[pair_slots[pair_offsets[g]..pair_offsets[g + 1]]]`,
-    /// in increasing tile order.
+    /// Gaussian g's pairs are numbered `pair_offsets[g]..pair_offsets[g + 1]` (Gaussian-major,
+    /// in increasing tile order), and the list entry at `entries[e]` is pair `entry_pairs[e]`:
+    /// the backward writes each pair's gradient record at its pair number, so that a
+    /// Gaussian's records are contiguous when they are summed.
     pub pair_offsets: Vec<u32>,
-    pub pair_slots: Vec<u32>,
+    pub entry_pairs: Vec<u32>,
 }
 
 impl Bins {
@@ -159,17 +167,14 @@ impl Bins {
         self.tile_offsets[t] as usize..self.tile_offsets[t + 1] as usize
     }
 
-    /// The slots of Gaussian `g`'s pairs.
-    pub fn slots(&self, g: usize) -> &[u32] {
-        &self.pair_slots[self.pair_offsets[g] as usize..self.pair_offsets[g + 1] as usize]
+    /// The pair numbers of Gaussian `g`.
+    pub fn pairs_of(&self, g: usize) -> std::ops::Range<usize> {
+        self.pair_offsets[g] as usize..self.pair_offsets[g + 1] as usize
     }
 }
 
 /// Splits `values` into consecutive pieces of the given lengths.
-pub(super) fn split_lengths<T>(
-    mut values: &mut [T],
-    lengths: impl Iterator<Item = usize>,
-) -> Vec<&mut [T]> {
+fn split_lengths<T>(mut values: &mut [T], lengths: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
     let mut pieces = Vec::new();
     for len in lengths {
         let (head, tail) = values.split_at_mut(len);
@@ -316,14 +321,14 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     }
     let mut cursor = tile_offsets[..tile_count].to_vec();
     let mut entries = vec![0u32; tile_ids.len()];
-    let mut pair_slots = vec![0u32; tile_ids.len()];
+    let mut entry_pairs = vec![0u32; tile_ids.len()];
     for &key in &by_depth {
         let g = key as u32;
         let pairs = pair_offsets[g as usize] as usize..pair_offsets[g as usize + 1] as usize;
         for pair in pairs {
             let t = tile_ids[pair] as usize;
             entries[cursor[t] as usize] = g;
-            pair_slots[pair] = cursor[t];
+            entry_pairs[cursor[t] as usize] = pair as u32;
             cursor[t] += 1;
         }
     }
@@ -334,6 +339,6 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
         tile_offsets,
         entries,
         pair_offsets,
-        pair_slots,
+        entry_pairs,
     }
 }

@@ -95,25 +95,36 @@ impl Row {
     pub fn of_tile(tx: u32, ty: u32, width: u32, height: u32) -> [Row; TILE as usize] {
         std::array::from_fn(|r| Row::new(tx * TILE, ty * TILE + r as u32, width, height))
     }
-
-    /// Whether entry `s` can reach one of the row's pixels; `dy` is cy - v.
-    #[inline(always)]
-    pub fn meets(&self, s: &Splat, dy: f32) -> bool {
-        s.meets_row(dy, self.xs[0], self.xs[self.len.max(1) - 1])
-    }
 }
 
-/// The rows of a tile whose first pixel centre is at `y0` that entry `s` may reach: those
-/// within its ellipse's vertical extent (a superset; [`Row::meets`] decides).
-#[inline(always)]
-pub(super) fn rows_of(s: &Splat, y0: f32) -> std::ops::Range<usize> {
-    let h = s.reach.max(0.0).sqrt() + 0.01;
-    let lo = (s.v - h - y0).ceil().max(0.0);
-    let hi = (s.v + h - y0).floor().min(TILE as f32 - 1.0);
-    if hi < lo {
-        0..0
-    } else {
-        lo as usize..hi as usize + 1
+/// The row test of a tile's rows: bit r of [`RowTest::rows`] is set where entry `s` can reach a
+/// pixel of row r (rows below the image are never set).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct RowTest {
+    y0: f32,
+    x_lo: f32,
+    x_hi: f32,
+    /// Rows inside the image.
+    inside: u32,
+}
+
+impl RowTest {
+    pub fn new(rows: &[Row; TILE as usize]) -> Self {
+        let row = &rows[0];
+        RowTest {
+            y0: row.cy,
+            x_lo: row.xs[0],
+            x_hi: row.xs[row.len.max(1) - 1],
+            inside: rows
+                .iter()
+                .enumerate()
+                .fold(0, |m, (r, row)| m | (u32::from(row.len > 0) << r)),
+        }
+    }
+
+    #[inline(always)]
+    pub fn rows(&self, s: &Splat) -> u32 {
+        s.row_mask(self.y0, self.x_lo, self.x_hi) & self.inside
     }
 }
 
@@ -200,13 +211,15 @@ struct RowState {
     t: Lanes,
     depth: Lanes,
     consumed: [u32; LANES],
-    stopped: [bool; LANES],
     /// Pixels still blending.
-    live: usize,
+    open: [bool; LANES],
+    /// Blended entries per pixel (for the counts).
+    blended: [u32; LANES],
 }
 
 /// Blends one tile's list front to back into its rows and stores their pixels. The list is
-/// walked once for all rows; an entry visits only the rows its ellipse spans.
+/// walked once for all rows; an entry visits only the rows its ellipse spans (a bit mask of
+/// the rows still blending), so no row pays a branch for an entry that misses it.
 #[inline(always)]
 fn blend_tile(
     scene: &Scene,
@@ -222,40 +235,42 @@ fn blend_tile(
         t: [1.0; LANES],
         depth: [0.0; LANES],
         consumed: [start; LANES],
-        stopped: std::array::from_fn(|i| i >= rows[r].len),
-        live: rows[r].len,
+        open: std::array::from_fn(|i| i < rows[r].len),
+        blended: [0; LANES],
     });
-    let mut live: usize = state.iter().map(|s| s.live).sum();
-    let mut counts = BlendCounts::default();
+    let test = RowTest::new(rows);
+    // Rows with a pixel still blending.
+    let mut live = test.inside;
+    let mut evaluations = 0u64;
     acc.fill([0.0; LANES]);
-    let y0 = rows[0].cy;
     for (j, s) in list.splats.iter().enumerate() {
         if live == 0 {
             break;
         }
         let next_consumed = start + j as u32 + 1;
         let f = &list.features[j * channels..(j + 1) * channels];
-        for r in rows_of(s, y0) {
+        let mut visit = test.rows(s) & live;
+        while visit != 0 {
+            let r = visit.trailing_zeros() as usize;
+            visit &= visit - 1;
             let (row, st) = (&rows[r], &mut state[r]);
-            let dy = row.cy - s.v;
-            if st.live == 0 || !row.meets(s, dy) {
-                continue;
-            }
-            counts.evaluations += row.len as u64;
-            let e = evaluate(s, &row.xs, dy);
+            evaluations += row.len as u64;
+            let e = evaluate(s, &row.xs, row.cy - s.v);
             let mut w = [0.0f32; LANES];
             for i in 0..LANES {
                 let next = st.t[i] * (1.0 - e.alpha[i]);
-                let hit = !st.stopped[i] && e.passes[i];
-                let stop = hit && next < MIN_TRANSMITTANCE as f32;
-                let blend = hit && !stop;
-                st.stopped[i] |= stop;
-                st.live -= usize::from(stop);
-                live -= usize::from(stop);
-                counts.contributions += u64::from(blend);
-                w[i] = if blend { e.alpha[i] * st.t[i] } else { 0.0 };
+                let hit = st.open[i] & e.passes[i];
+                let stop = hit & (next < MIN_TRANSMITTANCE as f32);
+                let blend = hit & !stop;
+                st.open[i] &= !stop;
+                st.blended[i] += u32::from(blend);
+                // Select, then multiply: a product inside the branch would not vectorise.
+                w[i] = e.alpha[i] * if blend { st.t[i] } else { 0.0 };
                 st.t[i] = if blend { next } else { st.t[i] };
                 st.consumed[i] = if blend { next_consumed } else { st.consumed[i] };
+            }
+            if !st.open.iter().any(|&o| o) {
+                live &= !(1 << r);
             }
             for (a, &fc) in acc[r * channels..(r + 1) * channels].iter_mut().zip(f) {
                 for i in 0..LANES {
@@ -269,6 +284,10 @@ fn blend_tile(
             }
         }
     }
+    let counts = BlendCounts {
+        evaluations,
+        contributions: state.iter().flat_map(|st| st.blended).map(u64::from).sum(),
+    };
     for (r, (row, st)) in rows.iter().zip(&state).enumerate() {
         let first = r * scene.width as usize + (tx * TILE) as usize;
         for i in 0..row.len {

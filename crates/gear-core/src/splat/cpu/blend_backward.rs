@@ -10,8 +10,7 @@
 
 use rayon::prelude::*;
 
-use super::bins::split_lengths;
-use super::blend::{rows_of, PixelState, Row, Scene, TileList};
+use super::blend::{PixelState, Row, RowTest, Scene, TileList};
 use super::lanes::{evaluate, with_avx2, Lanes, LANES};
 use super::TILE;
 use crate::splat::constants::MAX_ALPHA;
@@ -34,34 +33,59 @@ impl Replay<'_> {
     }
 }
 
-/// The gradient record of every (tile, entry) pair, in tile-list order (pairs x stride).
+/// The gradient records (pairs x stride, by pair number: Gaussian-major), written by the band
+/// threads at once.
+struct Records {
+    values: *mut f32,
+    stride: usize,
+    pairs: usize,
+}
+
+// SAFETY: every pair belongs to one list entry, every entry to one tile and every tile to one
+// band, so the threads write disjoint records (`write` is the only access), each once.
+unsafe impl Sync for Records {}
+
+impl Records {
+    /// Writes the lane sums of `sums` as the record of pair `pair`.
+    #[inline(always)]
+    fn write(&self, pair: usize, sums: &[Lanes]) {
+        assert!(pair < self.pairs && sums.len() >= self.stride);
+        // SAFETY: in bounds (checked above); no other thread touches this record.
+        let record = unsafe {
+            std::slice::from_raw_parts_mut(self.values.add(pair * self.stride), self.stride)
+        };
+        for (out, v) in record.iter_mut().zip(sums) {
+            *out = lane_sum(v);
+        }
+    }
+}
+
+/// The gradient record of every (tile, entry) pair by pair number (pairs x stride), so that
+/// each Gaussian's records are contiguous; records of pairs no pixel blended are zero.
 pub(super) fn blend_backward(scene: &Scene, replay: &Replay) -> Vec<f32> {
     let bins = scene.bins;
     let stride = replay.stride(scene.channels);
-    let mut records = vec![0.0f32; bins.pairs() * stride];
-    let tiles_x = bins.tiles_x as usize;
-    let band_pairs = (0..bins.tiles_y as usize).map(|b| {
-        let (first, end) = (b * tiles_x, (b + 1) * tiles_x);
-        (bins.tile_offsets[end] - bins.tile_offsets[first]) as usize * stride
-    });
-    split_lengths(&mut records, band_pairs)
+    let mut values = vec![0.0f32; bins.pairs() * stride];
+    let records = Records {
+        values: values.as_mut_ptr(),
+        stride,
+        pairs: bins.pairs(),
+    };
+    (0..bins.tiles_y)
         .into_par_iter()
-        .enumerate()
-        .for_each(|(b, band)| replay_band(scene, replay, b as u32, band));
-    records
+        .for_each(|band| replay_band(scene, replay, band, &records));
+    values
 }
 
 with_avx2!(
     /// Replays the tiles of one band of rows into their pair records.
-    fn replay_band(scene: &Scene, replay: &Replay, band: u32, records: &mut [f32]) -> () =
+    fn replay_band(scene: &Scene, replay: &Replay, band: u32, records: &Records) -> () =
         replay_band_body
 );
 
 #[inline(always)]
-fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &mut [f32]) {
+fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &Records) {
     let bins = scene.bins;
-    let stride = replay.stride(scene.channels);
-    let band_start = bins.tile_offsets[(band * bins.tiles_x) as usize] as usize;
     let mut list = TileList::new();
     let mut buffers = TileBuffers::new(scene.channels);
     for tx in 0..bins.tiles_x {
@@ -71,8 +95,6 @@ fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &mut [f3
             continue;
         }
         list.gather(bins, tile, scene.features, scene.channels);
-        let tile_records =
-            &mut records[(range.start - band_start) * stride..(range.end - band_start) * stride];
         let rows = Row::of_tile(tx, band, scene.width, scene.height);
         replay_tile(
             scene,
@@ -82,7 +104,7 @@ fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &mut [f3
             &rows,
             tx,
             &mut buffers,
-            tile_records,
+            records,
         );
     }
 }
@@ -120,6 +142,18 @@ impl TileBuffers {
             sums: vec![[0.0; LANES]; GEOMETRY + channels],
         }
     }
+}
+
+/// All ones where `condition` holds, else zero.
+#[inline(always)]
+fn mask(condition: bool) -> u32 {
+    u32::from(condition).wrapping_neg()
+}
+
+/// `value` where `mask` is all ones, +0 where it is zero.
+#[inline(always)]
+fn masked(value: f32, mask: u32) -> f32 {
+    f32::from_bits(value.to_bits() & mask)
 }
 
 /// The eight lanes summed as a fixed tree (vectorises; the same order every time).
@@ -186,8 +220,9 @@ fn replay_tile(
     rows: &[Row; TILE as usize],
     tx: u32,
     buffers: &mut TileBuffers,
-    records: &mut [f32],
+    records: &Records,
 ) {
+    let bins = scene.bins;
     let channels = scene.channels;
     let stride = replay.stride(channels);
     let mut state: [RowState; TILE as usize] = std::array::from_fn(|r| {
@@ -202,26 +237,32 @@ fn replay_tile(
             load_row(scene, replay, &rows[r], r, first, start, buffers)
         }
     });
-    let last = state.iter().map(|s| s.last).max().unwrap();
-    let y0 = rows[0].cy;
+    let ends: [u32; TILE as usize] = std::array::from_fn(|r| state[r].last);
+    let last = ends.iter().copied().max().unwrap();
+    let test = RowTest::new(rows);
     let zero = [0.0f32; LANES];
     for k in (start..last).rev() {
         let j = (k - start) as usize;
         let s = &list.splats[j];
         let f = &list.features[j * channels..(j + 1) * channels];
         let mut touched = false;
-        for r in rows_of(s, y0) {
+        // Rows whose consumed prefix holds entry k.
+        let holding = ends
+            .iter()
+            .enumerate()
+            .fold(0, |m, (r, &end)| m | (u32::from(k < end) << r));
+        let mut visit = test.rows(s) & holding;
+        while visit != 0 {
+            let r = visit.trailing_zeros() as usize;
+            visit &= visit - 1;
             let (row, st) = (&rows[r], &mut state[r]);
-            if k >= st.last {
-                continue;
-            }
             let dy = row.cy - s.v;
-            if !row.meets(s, dy) {
-                continue;
-            }
             let e = evaluate(s, &row.xs, dy);
-            let hit: [bool; LANES] = std::array::from_fn(|i| k < st.consumed[i] && e.passes[i]);
-            if !hit.iter().any(|&h| h) {
+            // Lane masks are all-ones or zero u32s, applied with a bitwise and: bool arrays
+            // and per-lane branches would compile to scalar code.
+            let hit: [u32; LANES] =
+                std::array::from_fn(|i| mask(k < st.consumed[i] && e.passes[i]));
+            if !hit.iter().any(|&h| h != 0) {
                 continue;
             }
             if !touched {
@@ -240,40 +281,44 @@ fn replay_tile(
                 // dL/dalpha_i: own contribution T_i·f_i minus 1/(1-alpha_i) times what it hides.
                 grad_a[i] = st.grad_alpha[i] * st.final_t[i] * inv_keep[i];
             }
+            // The blended lanes' weights, zero elsewhere: the sums below multiply by them
+            // instead of branching per lane, which keeps them vector adds.
+            let w_hit: Lanes = std::array::from_fn(|i| masked(w[i], hit[i]));
             let sums = &mut buffers.sums;
             for (c, &fc) in f.iter().enumerate() {
-                let g = &buffers.grad_f[r * channels + c];
-                let behind = &mut buffers.behind_f[r * channels + c];
+                // Whole-row copies and one loop per update: the form the compiler keeps in
+                // vector registers.
+                let g = buffers.grad_f[r * channels + c];
+                let mut behind = buffers.behind_f[r * channels + c];
                 for i in 0..LANES {
                     grad_a[i] += g[i] * (fc * t_i[i] - behind[i] * inv_keep[i]);
-                    behind[i] = if hit[i] {
-                        behind[i] + w[i] * fc
-                    } else {
-                        behind[i]
-                    };
                 }
+                for i in 0..LANES {
+                    behind[i] += w_hit[i] * fc;
+                }
+                buffers.behind_f[r * channels + c] = behind;
                 if replay.features_grad {
-                    let sum = &mut sums[GEOMETRY + c];
+                    let mut sum = sums[GEOMETRY + c];
                     for i in 0..LANES {
-                        sum[i] += if hit[i] { w[i] * g[i] } else { 0.0 };
+                        sum[i] += w_hit[i] * g[i];
                     }
+                    sums[GEOMETRY + c] = sum;
                 }
             }
             if scene.depth {
                 for i in 0..LANES {
                     grad_a[i] += st.grad_depth[i] * (s.z * t_i[i] - st.behind_d[i] * inv_keep[i]);
-                    sums[6][i] += if hit[i] { w[i] * st.grad_depth[i] } else { 0.0 };
-                    st.behind_d[i] = if hit[i] {
-                        st.behind_d[i] + w[i] * s.z
-                    } else {
-                        st.behind_d[i]
-                    };
+                    sums[6][i] += w_hit[i] * st.grad_depth[i];
+                    st.behind_d[i] += w_hit[i] * s.z;
                 }
             }
-            // The 0.999 clamp passes no gradient to opacity and power. Term by term over the
-            // lanes (not lane by lane), so that each sum is one vector add.
-            let unclamped: [bool; LANES] =
-                std::array::from_fn(|i| hit[i] && e.raw[i] <= MAX_ALPHA as f32);
+            // The 0.999 clamp passes no gradient to opacity and power: dL/dalpha is zeroed on
+            // clamped and unblended lanes first (every factor below is finite, so their terms
+            // are zeros), then the terms are summed over the lanes term by term (not lane by
+            // lane), so that each sum is one vector add.
+            let unclamped: [u32; LANES] =
+                std::array::from_fn(|i| hit[i] & mask(e.raw[i] <= MAX_ALPHA as f32));
+            let grad_a: Lanes = std::array::from_fn(|i| masked(grad_a[i], unclamped[i]));
             let gp: Lanes = std::array::from_fn(|i| grad_a[i] * e.alpha[i]);
             let dx = &e.dx;
             let terms: [Lanes; 6] = [
@@ -284,21 +329,20 @@ fn replay_tile(
                 std::array::from_fn(|i| (s.b * dx[i] + s.c * dy) * gp[i]),
                 std::array::from_fn(|i| grad_a[i] * e.gauss[i]),
             ];
-            for (sum, term) in sums.iter_mut().zip(&terms) {
+            // A fixed-size view, so the adds compile to whole-row vector adds.
+            let geometry: &mut [Lanes; 6] = (&mut sums[..6]).try_into().unwrap();
+            for (sum, term) in geometry.iter_mut().zip(&terms) {
                 for i in 0..LANES {
-                    sum[i] += if unclamped[i] { term[i] } else { 0.0 };
+                    sum[i] += term[i];
                 }
             }
             for i in 0..LANES {
-                st.t[i] = if hit[i] { t_i[i] } else { st.t[i] };
+                st.t[i] = if hit[i] != 0 { t_i[i] } else { st.t[i] };
             }
         }
         // Each pair's record is written once, its rows summed lane-wise in row order first.
         if touched {
-            let record = &mut records[j * stride..(j + 1) * stride];
-            for (out, v) in record.iter_mut().zip(&buffers.sums) {
-                *out = lane_sum(v);
-            }
+            records.write(bins.entry_pairs[k as usize] as usize, &buffers.sums);
         }
     }
 }

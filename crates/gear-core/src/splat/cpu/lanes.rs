@@ -48,7 +48,8 @@ const ROUND: f32 = 12_582_912.0;
 #[inline(always)]
 pub(super) fn exp(x: f32) -> f32 {
     let x = x.clamp(-87.0, 88.0);
-    let n = (x * LOG2E + ROUND) - ROUND;
+    let shifted = x * LOG2E + ROUND;
+    let n = shifted - ROUND;
     let r = x - n * LN2_HI - n * LN2_LO;
     let mut p = 1.987_569_2e-4f32;
     p = p * r + 1.398_199_9e-3;
@@ -57,7 +58,10 @@ pub(super) fn exp(x: f32) -> f32 {
     p = p * r + 0.166_666_65;
     p = p * r + 0.5;
     let e = p * r * r + r + 1.0;
-    e * f32::from_bits(((n as i32 + 127) as u32) << 23)
+    // `shifted` holds n in its low mantissa bits (1.5 · 2²³ + n, one unit per ulp), so 2^n's
+    // exponent is those bits plus the bias, shifted into place: integer lane operations, where
+    // `n as i32` (a saturating conversion) would be scalar code per lane.
+    e * f32::from_bits(shifted.to_bits().wrapping_add(127) << 23)
 }
 
 /// A list entry at the eight pixels of a row.

@@ -113,7 +113,7 @@ pub fn forward_in(
             * ((n * (11 + gaussians.channels)) // inputs copy
                 + n * std::mem::size_of::<bins::Splat>() / 4
                 + bins.tile_offsets.len()
-                + 2 * bins.entries.len() // entries, pair slots
+                + 2 * bins.entries.len() // entries, entry pairs
                 + bins.pair_offsets.len()
                 + 2 * pixels.final_t.len()) as u64;
         let stats = RasterStats {
@@ -190,23 +190,6 @@ pub fn backward_in(
     })
 }
 
-/// How many Gaussians ahead [`reduce`] prefetches records.
-const PREFETCH_AHEAD: usize = 12;
-
-/// Hints the CPU to load the cache line of `value`.
-#[inline(always)]
-fn prefetch(value: &f32) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: a prefetch has no effect on memory; the pointer is valid anyway.
-    unsafe {
-        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
-            (value as *const f32).cast(),
-        );
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = value;
-}
-
 /// Sums each Gaussian's pair records in tile order and chains them through the projection.
 fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGradients<f32> {
     let gaussians = state.gaussians.view();
@@ -230,21 +213,14 @@ fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGra
             let mut sums = vec![0.0f32; stride];
             for (k, out) in geometry.iter_mut().enumerate() {
                 let g = ci * chunk + k;
-                // Records lie in tile order, so a Gaussian's are scattered: ask for those of a
-                // Gaussian a few ahead while this one is summed.
-                if let Some(&slot) = (g + PREFETCH_AHEAD < n)
-                    .then(|| bins.slots(g + PREFETCH_AHEAD).first())
-                    .flatten()
-                {
-                    prefetch(&records[slot as usize * stride]);
-                }
-                let slots = bins.slots(g);
-                if slots.is_empty() {
+                let pairs = bins.pairs_of(g);
+                if pairs.is_empty() {
                     continue;
                 }
+                // A Gaussian's records are contiguous, in tile order.
                 sums.fill(0.0);
-                for &slot in slots {
-                    let record = &records[slot as usize * stride..(slot as usize + 1) * stride];
+                for record in records[pairs.start * stride..pairs.end * stride].chunks_exact(stride)
+                {
                     for (s, v) in sums.iter_mut().zip(record) {
                         *s += v;
                     }
