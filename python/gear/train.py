@@ -20,6 +20,7 @@ from gear import checkpoint
 from gear.coarse import SurfaceTest
 from gear.config import TrainConfig
 from gear.data import Scene, load_scene
+from gear.data.coverage import input_warnings
 from gear.device import limit_torch_threads
 from gear.model import Gaussians, points_from_depth, points_from_masks, render, scene_extent
 from gear.stages import ReconstructState, Refine, TrainView
@@ -364,6 +365,8 @@ def train(scene_dir: Path, out_dir: Path, config: TrainConfig, *, resume: bool =
         config = TrainConfig(**state["config"])
     config.save(out_dir / "config.json")
     trainer = Trainer(scene, out_dir, config, quiet, resume=state is not None)
+    for warning in input_warnings(scene):  # an input used only in part is said, never silent
+        trainer.log.say(f"warning: {warning}")
     if state is not None:
         trainer.timings.update(state["timings"])
         trainer.log.say(f"resuming from {state['stage']} iteration {state['iteration']}")
