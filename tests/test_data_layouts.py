@@ -339,10 +339,12 @@ def test_copy_of_layout_keeps_gt(fridge, tmp_path):
 
 def test_training_on_a_nerfstudio_capture_says_what_it_uses_in_part(fridge, tmp_path):
     """`gear train` reads the nerfstudio layout and logs (never silently drops) a depth image
-    missing from one view. The start state serves as both states, so the run is short: one
-    static part, no stage 3 (as in test_train's motionless scene)."""
+    missing from one view, and `gear eval` scores its test views without ground truth. The
+    start state serves as both states, so the run is short: one static part, no stage 3 (as in
+    test_train's motionless scene)."""
     import dataclasses
 
+    from gear.commands.eval import evaluate
     from gear.config import make_config
     from gear.train import train
 
@@ -361,3 +363,6 @@ def test_training_on_a_nerfstudio_capture_says_what_it_uses_in_part(fridge, tmp_
     said = [r["message"] for r in log if r.get("message", "").startswith("warning:")]
     assert len(said) == 1 and "depth on 3 of 4 end training views" in said[0], said
     assert "none on end/train/train_0002" in said[0]
+    metrics = evaluate(tmp_path / "out", root)
+    assert metrics["psnr_views"] == 4 and metrics["psnr"] > 10.0  # rendered vs test photos
+    assert metrics["axis_ang"] is None  # no gt/: joint errors are skipped, not faked
