@@ -31,8 +31,8 @@ command -v "$python" >/dev/null || { echo "setup: $python not found" >&2; exit 1
 
 # 4. torch only ever runs on the CPU here (the GPU work goes through wgpu), so where no CUDA GPU
 # is present the CPU build is enough (PyPI's Linux build adds 4.5 GB of CUDA libraries and
-# triton). It comes from the PyTorch CPU index; when that index is unreachable, PyPI's default build is installed
-# with the other dependencies below. An installed torch is kept.
+# triton). It comes from the PyTorch CPU index; when that index is unreachable, PyPI's default
+# build is installed with the other dependencies below. An installed torch is kept.
 if ! "$venv/bin/python" -c "import torch" 2>/dev/null \
     && ! { command -v nvidia-smi >/dev/null && nvidia-smi -L >/dev/null 2>&1; }; then
   torch_req=$("$venv/bin/python" -c "import tomllib; print(next(d for d in tomllib.load(open(
@@ -42,8 +42,8 @@ if ! "$venv/bin/python" -c "import torch" 2>/dev/null \
     || echo "setup: the PyTorch CPU index is unreachable; installing PyPI's torch (with CUDA libraries)"
 fi
 
-# 5. The Rust extension (gear._core) plus the package, editable, with dev extras. A venv made
-# when the distribution was still called "gear" drops that name first (same files, new name).
+# 5. The Rust extension (gear._core) plus the package, editable, with the dev and colmap
+# extras. A venv made when the distribution was still called "gear" drops that name first.
 "$venv/bin/python" -m pip show -q gear 2>/dev/null && "$venv/bin/python" -m pip uninstall -q -y gear
-VIRTUAL_ENV="$PWD/$venv" "$venv/bin/maturin" develop --release --extras dev -q 2>&1 | grep -v -E "^(📦|🔗|🐍|⚠️ Warning: You|💻|🛠|📖|✏️|🎯)" || true
+VIRTUAL_ENV="$PWD/$venv" "$venv/bin/maturin" develop --release --extras dev,colmap -q 2>&1 | grep -v -E "^(📦|🔗|🐍|⚠️ Warning: You|💻|🛠|📖|✏️|🎯)" || true
 "$venv/bin/python" -c "import gear._core" || { echo "setup: the extension did not build" >&2; exit 1; }

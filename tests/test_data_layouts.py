@@ -366,3 +366,29 @@ def test_training_on_a_nerfstudio_capture_says_what_it_uses_in_part(fridge, tmp_
     metrics = evaluate(tmp_path / "out", root)
     assert metrics["psnr_views"] == 4 and metrics["psnr"] > 10.0  # rendered vs test photos
     assert metrics["axis_ang"] is None  # no gt/: joint errors are skipped, not faked
+
+
+@needs_pycolmap
+def test_colmap_background_images_are_said_and_duplicate_names_refused(fridge, tmp_path):
+    root = tmp_path / "cm"
+    view = fridge.train("start")[0]
+    names = ["start/0000.png", "start/again/0000.png", "background/wall.png", "end/0000.png"]
+    for name in names:
+        (root / "images" / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / "masks" / name).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(_u8(view.rgb), "RGB").save(root / "images" / name)
+        Image.fromarray(_u8(view.alpha), "L").save(root / "masks" / f"{name}.png")
+    _colmap_text(root / "sparse" / "0", {1: _pinhole(view.camera)},
+                 [(view.camera.world_to_cam, 1, name) for name in names])
+    (problem,) = validate_scene(root)
+    assert "2 images are named start/train/0000" in problem
+    (root / "images/start/again/0000.png").unlink()
+    names.remove("start/again/0000.png")
+    _colmap_text(root / "sparse" / "1", {1: _pinhole(view.camera)},
+                 [(view.camera.world_to_cam, 1, name) for name in names])
+    shutil.rmtree(root / "sparse" / "0")
+    (root / "sparse" / "1").rename(root / "sparse" / "0")
+    scene = load_scene(root)
+    assert [len(scene.train(s)) for s in STATES] == [1, 1]
+    assert scene.warnings == ["sparse/0: image background/wall.png is in neither start/ nor end/: "
+                              "not used"]
