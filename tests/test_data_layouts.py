@@ -392,3 +392,17 @@ def test_colmap_background_images_are_said_and_duplicate_names_refused(fridge, t
     assert [len(scene.train(s)) for s in STATES] == [1, 1]
     assert scene.warnings == ["sparse/0: image background/wall.png is in neither start/ nor end/: "
                               "not used"]
+
+
+@pytest.mark.parametrize("encoding", ["0/255", "0/1", "1-bit", "16-bit"])
+def test_mask_encodings(fridge, tmp_path, encoding):
+    """Object masks as tools write them all read as the same mask."""
+    root = write_nerfstudio(fridge, tmp_path / "ns")
+    view = fridge.train("start")[0]
+    binary = view.alpha > 0.5
+    image = {"0/255": Image.fromarray(binary.astype(np.uint8) * 255, "L"),
+             "0/1": Image.fromarray(binary.astype(np.uint8), "L"),
+             "1-bit": Image.fromarray(binary).convert("1"),
+             "16-bit": Image.fromarray(binary.astype(np.uint16) * 65535)}[encoding]
+    image.save(root / "start/masks/train_0000.png")
+    np.testing.assert_array_equal(load_scene(root).train("start")[0].alpha, binary)

@@ -107,18 +107,20 @@ class Reader:
         return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
 
     def read_mask(self, path: Path, hw: tuple[int, int]) -> np.ndarray | None:
-        """[H,W] float32 {0,1} object mask from a single-channel image: > 127 is the object
-        (8-bit masks saved lossily keep their meaning), 1-bit masks as they are."""
+        """[H,W] float32 {0,1} object mask from a single-channel image: in a 0/1 mask 1 is the
+        object, otherwise values above half the type's range (> 127 in 8 bits, so masks saved
+        lossily keep their meaning)."""
         img = self._open(path)
         if img is None:
             return None
         if img.mode not in ("1", "L", "P", "I", "I;16"):
             self.problem(path, f"object mask must be a single-channel image, got mode {img.mode}")
             return None
-        arr = np.asarray(img.convert("L"))
+        arr = np.asarray(img.convert("L") if img.mode == "P" else img)
         if not self.same_shape(path, arr.shape, hw):
             return None
-        mask = (arr > 127).astype(np.float32)
+        half = 127 if img.mode in ("L", "P") else 32767
+        mask = (arr > (0 if arr.max(initial=0) <= 1 else half)).astype(np.float32)
         if not mask.any():
             self.problem(path, "object mask is empty (the object is not visible)")
             return None
