@@ -135,7 +135,7 @@ class Reader:
         return True
 
     def read_depth(
-        self, path: Path, hw: tuple[int, int], metres_per_unit: float = 1.0 / DEPTH_SCALE
+        self, path: Path, hw: tuple[int, int], units_per_metre: float = DEPTH_SCALE
     ) -> np.ndarray | None:
         """Camera-space z in metres from a 16-bit png or a 2D .npy (0 = no depth)."""
         if path.suffix == ".npy":
@@ -160,7 +160,7 @@ class Reader:
         if not np.all(np.isfinite(arr)) or arr.min() < 0:
             self.problem(path, "depth has negative or non-finite values")
             return None
-        return (arr.astype(np.float64) * metres_per_unit).astype(np.float32)
+        return arr.astype(np.float32) / np.float32(units_per_metre)
 
     def _load_npy(self, path: Path) -> np.ndarray | None:
         if not path.is_file():

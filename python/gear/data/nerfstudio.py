@@ -205,7 +205,7 @@ def _load_frame(
             extras[key] = None
     if extras["depth_file_path"]:
         view.depth = reader.read_depth(base / _rel(extras["depth_file_path"]), (h, w),
-                                       depth_scale)
+                                       1.0 / depth_scale)
     if extras["region_mask_path"]:
         view.regions = reader.read_regions(base / _rel(extras["region_mask_path"]), (h, w))
     if extras["part_ids_path"]:
