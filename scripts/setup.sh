@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs everything gear needs on a Debian machine, idempotently (quick when already done):
-# Mesa's software Vulkan driver, a Python 3.11 venv in .venv with the pinned dependencies,
-# and the Rust extension built in release mode into that venv.
+# Mesa's software Vulkan driver, a Python venv (3.11 in .venv by default; GEAR_PYTHON=python3.12
+# GEAR_VENV=.venv-py312 for another) with the dependencies, and the Rust extension built in
+# release mode into that venv.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -30,12 +31,29 @@ fi
 
 # 2. Toolchains the machine must already have.
 command -v cargo >/dev/null || { echo "setup: cargo not found; install Rust (rustup)" >&2; exit 1; }
-command -v python3.11 >/dev/null || { echo "setup: python3.11 not found" >&2; exit 1; }
+python="${GEAR_PYTHON:-python3.11}"
+venv="${GEAR_VENV:-.venv}"
+command -v "$python" >/dev/null || { echo "setup: $python not found" >&2; exit 1; }
 
-# 3. The venv with maturin; maturin then installs the project's pinned dependencies.
-[ -x .venv/bin/python ] || python3.11 -m venv .venv
-.venv/bin/python -m pip install -q "maturin>=1.7,<2"
+# 3. The venv with maturin; maturin then installs the project's dependencies.
+[ -x "$venv/bin/python" ] || "$python" -m venv "$venv"
+"$venv/bin/python" -m pip install -q "maturin>=1.7,<2"
 
-# 4. The Rust extension (gear._core) plus the package, editable, with dev extras.
-.venv/bin/maturin develop --release --extras dev -q 2>&1 | grep -v -E "^(📦|🔗|🐍|⚠️ Warning: You|💻|🛠|📖|✏️|🎯)" || true
-.venv/bin/python -c "import gear._core" || { echo "setup: the extension did not build" >&2; exit 1; }
+# 4. torch only ever runs on the CPU here (the GPU work goes through wgpu), so where no CUDA GPU
+# is present the CPU build is enough (PyPI's Linux build adds 4.5 GB of CUDA libraries and
+# triton). It comes from the PyTorch CPU index; when that index is unreachable, PyPI's default
+# build is installed with the other dependencies below. An installed torch is kept.
+if ! "$venv/bin/python" -c "import torch" 2>/dev/null \
+    && ! { command -v nvidia-smi >/dev/null && nvidia-smi -L >/dev/null 2>&1; }; then
+  torch_req=$("$venv/bin/python" -c "import tomllib; print(next(d for d in tomllib.load(open(
+    'pyproject.toml', 'rb'))['project']['dependencies'] if d.startswith('torch')))")
+  "$venv/bin/python" -m pip install -q --timeout 10 --retries 0 \
+      --index-url https://download.pytorch.org/whl/cpu "$torch_req" 2>/dev/null \
+    || echo "setup: the PyTorch CPU index is unreachable; installing PyPI's torch (with CUDA libraries)"
+fi
+
+# 5. The Rust extension (gear._core) plus the package, editable, with the dev and colmap
+# extras. A venv made when the distribution was still called "gear" drops that name first.
+"$venv/bin/python" -m pip show -q gear 2>/dev/null && "$venv/bin/python" -m pip uninstall -q -y gear
+VIRTUAL_ENV="$PWD/$venv" "$venv/bin/maturin" develop --release --extras dev,colmap -q 2>&1 | grep -v -E "^(📦|🔗|🐍|⚠️ Warning: You|💻|🛠|📖|✏️|🎯)" || true
+"$venv/bin/python" -c "import gear._core" || { echo "setup: the extension did not build" >&2; exit 1; }

@@ -78,10 +78,11 @@ def test_trans_json_semantics(tmp_path):
         ]
     }
     (tmp_path / "gt" / "trans.json").write_text(json.dumps(info))
-    from gear.data.load import _load_gt, _Reader
+    from gear.data.files import Reader
+    from gear.data.gt import load_gt
 
-    reader = _Reader(tmp_path)
-    gt = _load_gt(reader)
+    reader = Reader(tmp_path)
+    gt = load_gt(reader)
     assert reader.problems == []
     assert gt.joints[0].amount == pytest.approx(0.6)
     np.testing.assert_allclose(gt.joints[0].axis, [0, 1, 0])
@@ -112,7 +113,8 @@ def test_valid_scene_has_no_problems(scene_dir, capsys):
     assert validate_scene(scene_dir) == []
     assert main(["check", str(scene_dir)]) == 0
     out = capsys.readouterr().out.strip()
-    assert len(out.splitlines()) == 1 and "ok, 12 views" in out and "40x40" in out
+    assert "ok, 12 views" in out and "start 4 train + 2 test, end 4 train + 2 test" in out
+    assert "intrinsics:    40x40 fx" in out and "warning" not in out
 
 
 def test_missing_image(broken, capsys):
@@ -222,7 +224,9 @@ def test_scene_without_depth_or_masks_loads(scene_dir, tmp_path, capsys):
     assert bare.gt is None and not bare.has_depth and not bare.has_regions
     assert bare.test("start") == [] and len(bare.train("end")) == 4
     assert main(["check", str(tmp_path / "bare")]) == 0
-    assert "has RGBA only" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "depth:         none" in out and "region masks:  none" in out
+    assert "warning" not in out  # nothing partial: the training uses what there is
 
 
 def test_camera_problems_reported_even_without_image(broken):

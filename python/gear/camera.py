@@ -71,8 +71,23 @@ class Camera:
             raise ValueError(f"camera_angle_x must be in (0, pi), got {camera_angle_x}")
         fx = 0.5 * width / np.tan(0.5 * camera_angle_x)
         fy = fx if camera_angle_y is None else 0.5 * height / np.tan(0.5 * camera_angle_y)
-        w2c = np.linalg.inv(c2w_gl @ _GL_TO_CV)
-        return cls(w2c, fx, fy, width / 2.0, height / 2.0, width, height)
+        return cls.from_gl(c2w_gl, fx, fy, width / 2.0, height / 2.0, width, height)
+
+    @classmethod
+    def from_gl(
+        cls,
+        cam_to_world: np.ndarray,
+        fx: float,
+        fy: float,
+        cx: float,
+        cy: float,
+        width: int,
+        height: int,
+    ) -> Camera:
+        """From an OpenGL camera-to-world matrix and pixel intrinsics (nerfstudio's fl_x, fl_y,
+        cx, cy: the image centre is (width / 2, height / 2), as in OpenCV and COLMAP)."""
+        c2w_gl = _check_rigid(cam_to_world, "transform_matrix")
+        return cls(np.linalg.inv(c2w_gl @ _GL_TO_CV), fx, fy, cx, cy, width, height)
 
     @classmethod
     def look_at(

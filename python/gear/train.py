@@ -21,6 +21,7 @@ import torch
 from gear import checkpoint, outputs
 from gear.config import TrainConfig
 from gear.data import load_scene
+from gear.data.coverage import input_warnings
 from gear.data.scene import STATES
 from gear.device import limit_torch_threads
 from gear.pipeline.common import TrainView
@@ -51,6 +52,8 @@ def train(scene_dir: Path, out_dir: Path, config: TrainConfig, *, resume: bool =
         config = TrainConfig(**state["config"])
     config.save(out_dir / "config.json")
     runner = Runner(out_dir, config, quiet, resumed=state)
+    for warning in input_warnings(scene):  # an input used only in part is said, never silent
+        runner.log.say(f"warning: {warning}")
     if state is not None:
         runner.log.say(f"resuming from {state['stage']} iteration {state['iteration']}")
     torch.manual_seed(config.seed)

@@ -10,7 +10,8 @@ from gear.config import PROFILES, SCHEDULES
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="reconstruct parts and joints of a two-state scene")
-    p.add_argument("scene", type=Path, help="scene folder (docs/scenes.md layout)")
+    p.add_argument("scene", type=Path,
+                   help="scene folder: ArtGS/GEAR, nerfstudio or COLMAP (docs/scenes.md)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--profile", choices=PROFILES, default="fast",
                    help="schedule: quick (demo/CI), fast (10k+10k), full (30k+30k)")

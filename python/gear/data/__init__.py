@@ -1,4 +1,4 @@
-"""Scenes on disk (METHOD.md §1): load, validate, write."""
+"""Scenes on disk (docs/scenes.md): load and validate every layout, write the ArtGS/GEAR one."""
 
 from gear.data.load import load_scene, validate_scene
 from gear.data.scene import GroundTruth, GtJoint, Scene, SceneError, View

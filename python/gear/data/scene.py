@@ -1,6 +1,7 @@
 """In-memory scene: posed views of one object in two articulation states, plus optional GT.
 
-The on-disk layout is METHOD.md §1 (`gear.data.load` reads it, `gear.data.write` writes it).
+`gear.data.load` reads the on-disk layouts of docs/scenes.md; `gear.data.write` writes the
+ArtGS/GEAR one.
 """
 
 from __future__ import annotations
@@ -94,6 +95,8 @@ class Scene:
     root: Path
     views: dict[str, dict[str, list[View]]]  # state -> split -> views
     gt: GroundTruth | None = None
+    layout: str = "ArtGS/GEAR"  # the on-disk layout it was read from (docs/scenes.md)
+    warnings: list[str] = field(default_factory=list)  # inputs the loader found but did not use
 
     def train(self, state: str) -> list[View]:
         return self.views.get(state, {}).get("train", [])

@@ -1,4 +1,4 @@
-"""Write a scene in the METHOD.md §1 layout (the generator's output, and round-trip tests)."""
+"""Write a scene in the ArtGS/GEAR layout (the generator's output, and round-trip tests)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,9 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from gear.data.load import DEPTH_SCALE, gt_mesh_files, transforms_name
+from gear.data.artgs import transforms_name
+from gear.data.files import DEPTH_SCALE
+from gear.data.gt import gt_mesh_files
 from gear.data.scene import GtJoint, View
 
 MAX_DEPTH_M = np.iinfo(np.uint16).max / DEPTH_SCALE
