@@ -19,7 +19,7 @@ import torch
 from gear import outputs as outputs_mod
 from gear.articulation import PartMotion
 from gear.cli import main
-from gear.config import make_config
+from gear.config import RANGES, make_config
 from gear.outputs import drop_empty_parts
 from gear.run_folder import COMPLETE, LOCK, RunFolder, RunFolderError
 from gear.splats import Gaussians
@@ -221,6 +221,12 @@ def test_bad_config_values_are_one_line_naming_file_and_field(scene, tmp_path, c
     assert code == 1
     assert err.startswith(f"gear: error: {path}: {message}") and "\n" not in err
     assert not out.exists()
+
+
+def test_every_numeric_field_has_a_range():
+    numeric = {name for name, value in json.loads(make_config("full").to_json()).items()
+               if not isinstance(value, str | bool)}
+    assert numeric == set(RANGES)
 
 
 def test_every_field_is_type_checked():

@@ -120,8 +120,7 @@ class TrainConfig:
 # Each field's declared type as written ("int", "float | None", ...).
 _FIELD_TYPES = {f.name: str(f.type) for f in fields(TrainConfig)}
 
-# Allowed range of each numeric field: (lowest, highest, whether the lowest is allowed); a
-# field not listed only has to be finite.
+# Allowed range of every numeric field: (lowest, highest, whether the lowest is allowed).
 _AT_LEAST_1 = (1, None, True)
 _AT_LEAST_0 = (0, None, True)
 _POSITIVE = (0, None, False)
