@@ -21,6 +21,7 @@ from gear.articulation import PartMotion
 from gear.cli import main
 from gear.config import RANGES, make_config
 from gear.outputs import drop_empty_parts
+from gear.pipeline.runner import stops_interrupt
 from gear.run_folder import COMPLETE, LOCK, RunFolder, RunFolderError
 from gear.splats import Gaussians
 from gear.synth import generate
@@ -122,8 +123,8 @@ def test_out_naming_a_file_or_an_uncreatable_folder_is_one_clean_line(scene, tmp
     assert "\n" not in err
 
 
-def test_a_failure_while_writing_outputs_leaves_no_finished_looking_run(scene, tmp_path,
-                                                                        monkeypatch):
+def test_a_failure_while_writing_outputs_leaves_an_unfinished_run_that_resumes(
+        scene, tmp_path, monkeypatch):
     def broken(*_args, **_kw):
         raise OSError("disk full")
 
@@ -132,7 +133,9 @@ def test_a_failure_while_writing_outputs_leaves_no_finished_looking_run(scene, t
         train(scene, tmp_path / "out", make_config("quick", CONFIG), quiet=True)
     names = {p.name for p in (tmp_path / "out").iterdir()}
     assert COMPLETE not in names and "joints.json" not in names and LOCK not in names
-    assert "checkpoints" in names  # the run can still be resumed
+    monkeypatch.undo()
+    train(scene, tmp_path / "out", make_config("quick", CONFIG), resume=True, quiet=True)
+    assert (tmp_path / "out" / COMPLETE).exists() and (tmp_path / "out" / "meshes").is_dir()
 
 
 # --- resume checks what it resumes -----------------------------------------------------------
@@ -194,6 +197,15 @@ def test_sigterm_and_sighup_save_a_checkpoint(scene, tmp_path, sig):
     saved = torch.load(out / "checkpoints" / "last.pt", weights_only=False)
     assert saved["stage"] == "stage1-start" and saved["iteration"] >= 3
     assert not (out / LOCK).exists() and not (out / COMPLETE).exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_stop_signals_outside_the_iterations_unwind_like_ctrl_c(sig):
+    before = signal.getsignal(sig)
+    with stops_interrupt(), pytest.raises(KeyboardInterrupt):
+        os.kill(os.getpid(), sig)
+        time.sleep(5)  # the handler runs at the next bytecode; never reached
+    assert signal.getsignal(sig) == before  # restored for library callers
 
 
 def _read(path: Path) -> str:

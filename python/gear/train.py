@@ -25,7 +25,7 @@ from gear.data import load_scene
 from gear.data.scene import STATES, Scene
 from gear.device import limit_torch_threads
 from gear.pipeline.common import TrainView
-from gear.pipeline.runner import Runner
+from gear.pipeline.runner import Runner, stops_interrupt
 from gear.pipeline.stage1 import reconstruct_states
 from gear.pipeline.stage2 import Stage2Result, initialise_parts
 from gear.pipeline.stage3 import refine_parts
@@ -46,7 +46,8 @@ def train(scene_dir: Path, out_dir: Path, config: TrainConfig, *, resume: bool =
     """Runs the whole method on a scene folder and writes the outputs to `out_dir`, which it
     holds for the run (gear.run_folder: lock, --resume / --overwrite, completion marker)."""
     scene = load_scene(scene_dir)
-    with RunFolder.open(Path(out_dir), resume=resume, overwrite=overwrite) as folder:
+    with RunFolder.open(Path(out_dir), resume=resume, overwrite=overwrite) as folder, \
+            stops_interrupt():
         return _train(scene, Path(scene_dir), folder, config, resume, quiet)
 
 

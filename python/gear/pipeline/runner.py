@@ -9,6 +9,8 @@ import json
 import signal
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Protocol
 
@@ -52,6 +54,20 @@ def _jsonable(value: object) -> object:
 # Ctrl-C, `kill` / a scheduler's stop (SIGTERM) and a closed terminal (SIGHUP) all end a run
 # the same way: with a checkpoint.
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+@contextmanager
+def stops_interrupt() -> Iterator[None]:
+    """For a whole run, SIGTERM and SIGHUP raise KeyboardInterrupt as Ctrl-C does, so a stop
+    outside the iterations (stage 2, the outputs) still unwinds: the output folder is released
+    and the last checkpoint stays the run's state. Inside `Runner.run`, `_Interrupt` takes over
+    and saves a checkpoint first."""
+    previous = {sig: signal.signal(sig, signal.default_int_handler) for sig in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 class _Interrupt:
