@@ -13,7 +13,7 @@ out=runs/demo/fridge-quick
 $py -m gear info
 [ -f "$scene/transforms_train_start.json" ] ||
   $py -m gear synth fridge --out "$scene" --res 96 --views 24 --test-views 4
-$py -m gear train "$scene" --out "$out" --profile quick "$@"
+$py -m gear train "$scene" --out "$out" --profile quick --overwrite "$@"  # replaces an earlier demo run
 $py -m gear eval "$out" "$scene"
 echo "demo: outputs in $out (joints.json, meshes/, parts/, renders/); try"
 echo "  $py -m gear render $out --t 0 0.5 1   and   $py -m gear export $out --urdf $out/urdf"

@@ -169,7 +169,8 @@ def test_run_loop_records_every_run_and_failure(tmp_path, monkeypatch, capsys):
     scene.mkdir()
     seen = []
 
-    def fake_train(scene_dir, out_dir, config, quiet=False):
+    def fake_train(scene_dir, out_dir, config, overwrite=False, quiet=False):
+        assert overwrite  # a re-run replaces the earlier run of that configuration
         seen.append((scene_dir, config.stage3_iterations, config.schedule, config.em_interval))
         if config.schedule == "joint":
             raise RuntimeError("stage 3 iteration 7: non-finite loss")

@@ -3,9 +3,11 @@ needs to continue exactly where it stopped (parameters, Adam moments, RNG states
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from gear.splats import Gaussians
@@ -49,3 +51,49 @@ def load(directory: Path) -> dict | None:
         return torch.load(path, weights_only=False)
     except Exception as err:  # a truncated or foreign file: say which, never a deep traceback
         raise ValueError(f"{path}: cannot read the checkpoint ({err})") from err
+
+
+def scene_fingerprint(scene_dir: Path, cameras: list) -> dict:  # list[Camera]
+    """What a checkpoint was made from: the scene's files (path -> size; `gt/` is left out, only
+    evaluation reads it) and a digest of its cameras (intrinsics, size, pose)."""
+    scene_dir = Path(scene_dir)
+    files = {str(p.relative_to(scene_dir)): p.stat().st_size
+             for p in sorted(scene_dir.rglob("*"))
+             if p.is_file() and p.relative_to(scene_dir).parts[0] != "gt"}
+    digest = hashlib.sha256()
+    for cam in cameras:
+        digest.update(np.asarray(cam.world_to_cam, dtype=np.float64).tobytes())
+        digest.update(np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height],
+                               dtype=np.float64).tobytes())
+    return {"files": files, "cameras": digest.hexdigest()}
+
+
+def _listed(names: list[str]) -> str:
+    return ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+
+
+def check_resumable(saved: dict, scene: dict, config: dict) -> None:
+    """A one-line ValueError naming what differs between the checkpoint `saved` and this run's
+    scene fingerprint and resolved config (both as `scene_fingerprint` / JSON dicts)."""
+    before = saved.get("scene")
+    if before is not None:  # checkpoints written before fingerprints existed are not checked
+        old, new = before["files"], scene["files"]
+        differences = []
+        if missing := sorted(set(old) - set(new)):
+            differences.append(f"files gone: {_listed(missing)}")
+        if added := sorted(set(new) - set(old)):
+            differences.append(f"new files: {_listed(added)}")
+        if changed := sorted(n for n in set(old) & set(new) if old[n] != new[n]):
+            differences.append(f"files of another size: {_listed(changed)}")
+        if before["cameras"] != scene["cameras"]:
+            differences.append("the cameras differ")
+        if differences:
+            raise ValueError("--resume: the checkpoint was made from another scene ("
+                             + "; ".join(differences) + ")")
+    saved_config = saved["config"]
+    changed = [f"{name} {saved_config.get(name)!r} -> {value!r}" for name, value in config.items()
+               if name in saved_config and saved_config[name] != value]
+    if changed:
+        raise ValueError("--resume: the options differ from the saved run's ("
+                         + ", ".join(changed) + "); resume without them or start over with "
+                         "--overwrite")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -103,21 +104,8 @@ class TrainConfig:
     mesh_trunc: float = 0.02
 
     def __post_init__(self) -> None:
-        if self.schedule not in SCHEDULES:
-            raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
-        if self.profile not in PROFILES:
-            raise ValueError(f"profile must be one of {PROFILES}, got {self.profile!r}")
-        if self.num_parts is not None and self.num_parts < 1:
-            raise ValueError(f"num_parts must be >= 1 (static part included), got {self.num_parts}")
-        for name in ("stage1_iterations", "stage3_iterations", "em_interval", "densify_interval",
-                     "opacity_reset_interval", "checkpoint_every", "log_every", "knn_neighbors",
-                     "m_step_views"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not self.small_hinge_margin >= 0:
-            raise ValueError(f"small_hinge_margin must be >= 0, got {self.small_hinge_margin}")
-        if self.classify_tune_steps < 0:
-            raise ValueError(f"classify_tune_steps must be >= 0, got {self.classify_tune_steps}")
+        for f in fields(self):
+            check_field(f.name, getattr(self, f.name))
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2)
@@ -127,6 +115,78 @@ class TrainConfig:
 
     def replace(self, **changes: Any) -> TrainConfig:
         return dataclasses.replace(self, **changes)
+
+
+# Each field's declared type as written ("int", "float | None", ...).
+_FIELD_TYPES = {f.name: str(f.type) for f in fields(TrainConfig)}
+
+# Allowed range of every numeric field: (lowest, highest, whether the lowest is allowed).
+_AT_LEAST_1 = (1, None, True)
+_AT_LEAST_0 = (0, None, True)
+_POSITIVE = (0, None, False)
+_FRACTION = (0, 1, True)
+RANGES: dict[str, tuple[float, float | None, bool]] = {
+    "seed": _AT_LEAST_0, "num_parts": _AT_LEAST_1, "voxel_size": _POSITIVE,
+    "dilation_radius": _AT_LEAST_0, "stage1_iterations": _AT_LEAST_1,
+    "stage3_iterations": _AT_LEAST_1, "em_interval": _AT_LEAST_1, "knn_neighbors": _AT_LEAST_1,
+    "m_step_views": _AT_LEAST_1, "joint_classify_iteration": _AT_LEAST_0,
+    "revolute_eps_deg": (0, 180, True), "classify_tune_steps": _AT_LEAST_0,
+    "small_hinge_margin": _AT_LEAST_0, "em_refine_joint_iterations": _AT_LEAST_0,
+    "static_class_weight": _POSITIVE, "gamma_prism": _AT_LEAST_0,
+    "small_part_threshold": _AT_LEAST_0, "pseudo_min_conf": _FRACTION,
+    "pseudo_min_gap": _FRACTION, "pseudo_min_area": _AT_LEAST_0, "densify_from": _AT_LEAST_0,
+    "densify_until": _AT_LEAST_0, "densify_interval": _AT_LEAST_1,
+    "densify_grad_threshold": _POSITIVE, "stage3_densify_until": _AT_LEAST_0,
+    "opacity_reset_interval": _AT_LEAST_1, "percent_dense": _POSITIVE,
+    "prune_opacity": _FRACTION, "prune_max_scale": _POSITIVE, "max_gaussians": _AT_LEAST_1,
+    "init_voxel_fraction": _POSITIVE, "init_max_points": _AT_LEAST_1,
+    "random_init_points": _AT_LEAST_1, "checkpoint_every": _AT_LEAST_1,
+    "log_every": _AT_LEAST_1, "mesh_voxel": _POSITIVE, "mesh_trunc": _POSITIVE,
+    **{name: _AT_LEAST_0 for name in ("lambda_dssim", "lambda_depth", "lambda_sam",
+                                     "lambda_knn", "lambda_opacity", "lambda_anchor")},
+    **{name: _POSITIVE for name in ("lr_means", "lr_means_final", "lr_quats", "lr_log_scales",
+                                   "lr_opacity", "lr_colors", "lr_logits", "lr_motion_rot",
+                                   "lr_motion_trans")},
+}
+CHOICES = {"schedule": SCHEDULES, "profile": PROFILES}
+
+
+def _kind(value: Any) -> str:
+    return {bool: "a boolean", str: "a string", int: "an integer", float: "a number",
+            type(None): "null"}.get(type(value), f"a {type(value).__name__}")
+
+
+def check_field(name: str, value: Any) -> None:
+    """ValueError naming the field when `value` has the wrong type or is out of range."""
+    annotation = _FIELD_TYPES[name]
+    wanted = annotation.removesuffix(" | None")
+    expected = f"expected {'an' if wanted == 'int' else 'a'} {wanted}"
+    if value is None:
+        if not annotation.endswith("| None"):
+            raise ValueError(f"{name}: {expected}, got null")
+        return
+    if wanted == "bool":
+        ok = isinstance(value, bool)
+    elif wanted == "str":
+        ok = isinstance(value, str)
+    elif wanted == "int":
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:  # float: an integer is a fine number too
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+    if not ok:
+        raise ValueError(f"{name}: {expected}, got {value!r} ({_kind(value)})")
+    if name in CHOICES and value not in CHOICES[name]:
+        raise ValueError(f"{name}: must be one of {CHOICES[name]}, got {value!r}")
+    if isinstance(value, str | bool):
+        return
+    if not math.isfinite(value):
+        raise ValueError(f"{name}: must be finite, got {value}")
+    if name in RANGES:
+        low, high, low_allowed = RANGES[name]
+        if value < low or (value == low and not low_allowed):
+            raise ValueError(f"{name}: must be {'>=' if low_allowed else '>'} {low}, got {value}")
+        if high is not None and value > high:
+            raise ValueError(f"{name}: must be <= {high}, got {value}")
 
 
 def _profile_changes(profile: str) -> dict[str, Any]:
@@ -173,6 +233,11 @@ def load_overrides(path: Path) -> dict[str, Any]:
     unknown = sorted(set(data) - known)
     if unknown:
         raise ValueError(f"{path}: unknown config fields {unknown}")
+    for name, value in data.items():
+        try:
+            check_field(name, value)
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from None
     return data
 
 

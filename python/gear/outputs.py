@@ -131,3 +131,24 @@ def write_meshes(out_dir: Path, g: Gaussians, motion: PartMotion | None, canonic
 
 def write_joints(path: Path, canonical: str, joints: list[dict]) -> None:
     path.write_text(json.dumps({"canonical": canonical, "joints": joints}, indent=2) + "\n")
+
+
+def drop_empty_parts(g: Gaussians, motion: PartMotion) -> tuple[Gaussians, PartMotion, list[int]]:
+    """The model without the movable parts no Gaussian belongs to (more parts asked for than
+    the data has): their logit columns and motions go, the others are renumbered in order.
+    Returns the dropped part ids (empty when every part keeps Gaussians)."""
+    counts = torch.bincount(g.part_ids(), minlength=g.num_parts)
+    keep = [0] + [k for k in range(1, g.num_parts) if int(counts[k]) > 0]
+    dropped = [k for k in range(1, g.num_parts) if int(counts[k]) == 0]
+    if not dropped:
+        return g, motion, []
+    # Every Gaussian's argmax is a kept column, so the kept columns' argmax is the same part.
+    kept = Gaussians({name: (t.detach()[:, keep] if name == "logits" else t.detach())
+                      for name, t in g.params.items()})
+    smaller = PartMotion(len(keep), dtype=motion.qr.dtype)
+    movable = torch.tensor(keep[1:]) - 1
+    with torch.no_grad():
+        smaller.qr.copy_(motion.qr[movable])
+        smaller.qd.copy_(motion.qd[movable])
+        smaller.prismatic.copy_(motion.prismatic[keep])
+    return kept, smaller, dropped

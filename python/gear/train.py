@@ -11,6 +11,7 @@ Checkpoints let an interrupted run continue to the same result (gear.pipeline.ru
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,13 +23,15 @@ from gear import checkpoint, outputs
 from gear.config import TrainConfig
 from gear.data import load_scene
 from gear.data.coverage import input_warnings
-from gear.data.scene import STATES
+from gear.data.scene import STATES, Scene
 from gear.device import limit_torch_threads
 from gear.pipeline.common import TrainView
-from gear.pipeline.runner import Runner
+from gear.pipeline.runner import Runner, stops_interrupt
 from gear.pipeline.stage1 import reconstruct_states
 from gear.pipeline.stage2 import Stage2Result, initialise_parts
 from gear.pipeline.stage3 import refine_parts
+from gear.pipeline.stage3.joints import object_center, start_to_end_joints
+from gear.run_folder import RunFolder
 
 
 @dataclass
@@ -40,18 +43,30 @@ class TrainResult:
 
 
 def train(scene_dir: Path, out_dir: Path, config: TrainConfig, *, resume: bool = False,
-          quiet: bool = False) -> TrainResult:
-    """Runs the whole method on a scene folder and writes the outputs to `out_dir`."""
+          overwrite: bool = False, quiet: bool = False) -> TrainResult:
+    """Runs the whole method on a scene folder and writes the outputs to `out_dir`, which it
+    holds for the run (gear.run_folder: lock, --resume / --overwrite, completion marker)."""
     scene = load_scene(scene_dir)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    with RunFolder.open(Path(out_dir), resume=resume, overwrite=overwrite) as folder, \
+            stops_interrupt():
+        return _train(scene, Path(scene_dir), folder, config, resume, quiet)
+
+
+def _train(scene: Scene, scene_dir: Path, folder: RunFolder, config: TrainConfig, resume: bool,
+           quiet: bool) -> TrainResult:
+    out_dir = folder.path
+    fingerprint = checkpoint.scene_fingerprint(
+        scene_dir, [v.camera for s in STATES for vs in scene.views[s].values() for v in vs])
     state = checkpoint.load(out_dir / "checkpoints") if resume else None
     if resume and state is None:
         raise ValueError(f"--resume: no checkpoint in {out_dir / 'checkpoints'}")
     if state is not None:
+        checkpoint.check_resumable(state, fingerprint, json.loads(config.to_json()))
         config = TrainConfig(**state["config"])
     config.save(out_dir / "config.json")
-    runner = Runner(out_dir, config, quiet, resumed=state)
+    runner = Runner(out_dir, config, quiet, resumed=state, scene=fingerprint)
+    for note in folder.notes:
+        runner.log.say(note)
     for warning in input_warnings(scene):  # an input used only in part is said, never silent
         runner.log.say(f"warning: {warning}")
     if state is not None:
@@ -73,20 +88,32 @@ def train(scene_dir: Path, out_dir: Path, config: TrainConfig, *, resume: bool =
         refined = refine_parts(models, coarse, views, config, runner, state)
 
         t0 = time.perf_counter()
+        notes = list(coarse.notes)
         if refined is None:  # static object: the canonical stage-1 model, one part
             g, motion, joints = models[coarse.canonical], None, []
         else:
-            g, motion, joints = refined.gaussians, refined.motion, refined.joints_now()
-        outputs.write_joints(out_dir / "joints.json", coarse.canonical, joints)
-        outputs.write_ply(out_dir / "gaussians_canonical.ply", g)
-        np.save(out_dir / "parts.npy", g.part_ids().numpy().astype(np.int64))
-        outputs.write_view_images(out_dir, g, motion, coarse.canonical, scene.views)
-        outputs.write_meshes(out_dir, g, motion, coarse.canonical,
+            g, motion, dropped = outputs.drop_empty_parts(refined.gaussians, refined.motion)
+            joints = start_to_end_joints(motion, coarse.canonical, object_center(g))
+            if dropped:
+                notes.append(f"dropped {len(dropped)} part(s) left without Gaussians "
+                             f"({', '.join(map(str, dropped))}): {len(joints)} movable part(s) "
+                             "remain")
+                runner.log.say(notes[-1])
+        # Written to a staging folder and moved into place, the completion marker last: the
+        # folder never shows half the outputs as if they were a finished run's.
+        staged = folder.staging()
+        outputs.write_joints(staged / "joints.json", coarse.canonical, joints)
+        outputs.write_ply(staged / "gaussians_canonical.ply", g)
+        np.save(staged / "parts.npy", g.part_ids().numpy().astype(np.int64))
+        outputs.write_view_images(staged, g, motion, coarse.canonical, scene.views)
+        outputs.write_meshes(staged, g, motion, coarse.canonical,
                              {s: scene.train(s) for s in STATES}, config.mesh_voxel,
                              config.mesh_trunc)
         runner.timings["outputs"] = time.perf_counter() - t0
         runner.log.write({"event": "timings", **runner.timings})
-        return TrainResult(joints, coarse.canonical, dict(runner.timings), list(coarse.notes))
+        folder.publish({"finished": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+                        "joints": len(joints), "timings": runner.timings})
+        return TrainResult(joints, coarse.canonical, dict(runner.timings), notes)
     finally:
         torch.set_num_threads(threads)
         runner.log.close()

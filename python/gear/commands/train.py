@@ -13,8 +13,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", type=Path,
                    help="scene folder: ArtGS/GEAR, nerfstudio or COLMAP (docs/scenes.md)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--profile", choices=PROFILES, default="fast",
-                   help="schedule: quick (demo/CI), fast (10k+10k), full (30k+30k)")
+    p.add_argument("--profile", choices=PROFILES, default=None,
+                   help="schedule: quick (demo/CI), fast (10k+10k, default), full (30k+30k)")
     p.add_argument("--parts", type=int, default=None,
                    help="number of parts K including the static one (default: estimated)")
     p.add_argument("--config", type=Path, default=None,
@@ -23,14 +23,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="em (alternating, default), joint (no alternation), em-refine")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--resume", action="store_true",
-                   help="continue from OUT/checkpoints (with the config saved there)")
+                   help="continue the unfinished run in OUT (with the config saved there)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="remove the run already in OUT before starting a new one")
     p.add_argument("--quiet", action="store_true", help="no progress bars; log.jsonl only")
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from gear.cli import UserError
-    from gear.config import load_overrides, make_config
+    from gear.config import load_config, load_overrides, make_config
     from gear.data import SceneError
     from gear.train import train
 
@@ -39,9 +41,16 @@ def run(args: argparse.Namespace) -> int:
                          ("seed", args.seed)):
         if value is not None:
             overrides[field] = value
-    config = make_config(args.profile, overrides)
+    saved = args.out / "config.json"
+    if args.resume and args.profile is None and saved.is_file():
+        # Resuming: the saved run's config, with only the options given here on top (train
+        # refuses any that differ from the saved run).
+        config = load_config(saved).replace(**overrides)
+    else:
+        config = make_config(args.profile or "fast", overrides)
     try:
-        result = train(args.scene, args.out, config, resume=args.resume, quiet=args.quiet)
+        result = train(args.scene, args.out, config, resume=args.resume,
+                       overwrite=args.overwrite, quiet=args.quiet)
     except SceneError as err:
         raise UserError("invalid scene:\n  " + "\n  ".join(err.problems)) from err
     print_result(result, args.scene, args.out)

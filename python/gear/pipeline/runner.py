@@ -9,6 +9,8 @@ import json
 import signal
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Protocol
 
@@ -49,22 +51,42 @@ def _jsonable(value: object) -> object:
     return str(value)
 
 
+# Ctrl-C, `kill` / a scheduler's stop (SIGTERM) and a closed terminal (SIGHUP) all end a run
+# the same way: with a checkpoint.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+@contextmanager
+def stops_interrupt() -> Iterator[None]:
+    """For a whole run, SIGTERM and SIGHUP raise KeyboardInterrupt as Ctrl-C does, so a stop
+    outside the iterations (stage 2, the outputs) still unwinds: the output folder is released
+    and the last checkpoint stays the run's state. Inside `Runner.run`, `_Interrupt` takes over
+    and saves a checkpoint first."""
+    previous = {sig: signal.signal(sig, signal.default_int_handler) for sig in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 class _Interrupt:
-    """Turns Ctrl-C into a flag checked between iterations, so the checkpoint written on
-    interruption is a consistent iteration boundary."""
+    """Turns the stop signals into a flag checked between iterations, so the checkpoint written
+    on interruption is a consistent iteration boundary."""
 
     def __init__(self) -> None:
         self.requested = False
 
     def __enter__(self) -> _Interrupt:
-        self._previous = signal.signal(signal.SIGINT, self._handler)
+        self._previous = {sig: signal.signal(sig, self._handler) for sig in STOP_SIGNALS}
         return self
 
     def _handler(self, _sig: int, _frame: object) -> None:
         self.requested = True
 
     def __exit__(self, *exc: object) -> None:
-        signal.signal(signal.SIGINT, self._previous)
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
 
 
 class IterativeStage(Protocol):
@@ -84,8 +106,9 @@ class Runner:
     finished stages and the checkpoint that holds them with the stage under way."""
 
     def __init__(self, out_dir: Path, config: TrainConfig, quiet: bool,
-                 resumed: dict | None = None) -> None:
+                 resumed: dict | None = None, scene: dict | None = None) -> None:
         self.config, self.quiet = config, quiet
+        self.scene = scene  # the scene's fingerprint, checked on resume
         self.ckpt_dir = out_dir / "checkpoints"
         self.log = RunLog(out_dir / "log.jsonl", quiet, append=resumed is not None)
         self.timings: dict[str, float] = dict(resumed["timings"]) if resumed else {}
@@ -101,6 +124,7 @@ class Runner:
             "stage": stage_name,
             "iteration": iteration,
             "config": json.loads(self.config.to_json()),
+            "scene": self.scene,
             **self.results,
             "timings": dict(self.timings),
         }
@@ -115,7 +139,8 @@ class Runner:
 
     def run(self, stage: IterativeStage, start: int, total: int) -> None:
         """Iterations start..total-1 of `stage`, with progress, logging and checkpoints; on
-        Ctrl-C, a checkpoint at the iteration boundary and KeyboardInterrupt."""
+        Ctrl-C, SIGTERM or SIGHUP, a checkpoint at the iteration boundary and
+        KeyboardInterrupt."""
         c = self.config
         bar = tqdm(total=total, initial=start, desc=stage.name, disable=self.quiet,
                    dynamic_ncols=True, leave=True)

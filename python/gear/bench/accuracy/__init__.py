@@ -141,7 +141,8 @@ def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: d
     record = Run(scene, budget, variant, iterations)
     try:
         t0 = time.perf_counter()
-        result = train(scene_dir, out_dir, config, quiet=True)
+        # A re-run of the benchmark replaces that configuration's earlier run.
+        result = train(scene_dir, out_dir, config, overwrite=True, quiet=True)
         record.timings = dict(result.timings) or {"total": time.perf_counter() - t0}
         metrics = evaluate(out_dir, scene_dir)
         # Per-joint rows and skip reasons stay with the run, as `gear eval` leaves them.
