@@ -192,11 +192,17 @@ def test_view_refuses_an_unknown_host(out_dir, capsys):
         "gear: error: --host 192.0.2.1: not an address of this machine")
 
 
+def _sigint_as_in_a_terminal() -> None:
+    """A shell that starts the test suite in the background makes its children ignore SIGINT,
+    and Python keeps an ignored SIGINT ignored: give the viewer a terminal's default."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_view_command_prints_the_url_and_stops_on_ctrl_c(out_dir):
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "gear", "view", str(out_dir), "--port",
                              str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=_sigint_as_in_a_terminal)
     try:
         line = proc.stdout.readline()
         assert f"http://127.0.0.1:{port}" in line and "Ctrl-C" in line
