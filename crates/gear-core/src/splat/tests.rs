@@ -483,8 +483,12 @@ fn check_finite(
     last.unwrap()
 }
 
-#[test]
-fn hard_cases_stay_finite() {
+/// Renders the field's hard cases through `check` (forward and backward finite, forward
+/// against the reference where the case allows a comparison; gradients returned) and asserts
+/// what each case implies of the gradients. Shared by the GPU and the CPU executor's tests.
+pub(crate) fn hard_cases_stay_finite_with(
+    check_finite: impl Fn(&str, &OwnedGaussians, &Camera, bool) -> GaussianGradients<f32>,
+) {
     let cam = origin_camera(40, 30);
     let id = [1.0, 0.0, 0.0, 0.0];
 
@@ -585,6 +589,17 @@ fn hard_cases_stay_finite() {
         &camera(1000, 700),
         true,
     );
+    check_finite(
+        "odd 37x23 image",
+        &random_scene(500, 3, 14),
+        &camera(37, 23),
+        true,
+    );
+}
+
+#[test]
+fn hard_cases_stay_finite() {
+    hard_cases_stay_finite_with(check_finite);
 }
 
 /// Needles (one axis ~30x the others) at random angles: the blend only sees the tiles their

@@ -7,9 +7,9 @@ use rayon::ThreadPool;
 use super::{backward_in, build_pool, forward_in, CpuState};
 use crate::splat::reference;
 use crate::splat::tests::{
-    all_finite, camera, geometry_gradients, gradient_errors, gradients_finite, options,
-    origin_camera, plain_scene, random_image_grads, random_scene, random_scene_sized, relative_l2,
-    ImageError,
+    all_finite, camera, geometry_gradients, gradient_errors, gradients_finite,
+    hard_cases_stay_finite_with, options, random_image_grads, random_scene, random_scene_sized,
+    relative_l2, ImageError,
 };
 use crate::splat::types::{
     Camera, GaussianGradients, OutputGradients, OwnedGaussians, RenderOutput,
@@ -280,101 +280,10 @@ fn check_finite(
     g
 }
 
-/// The hard cases of the GPU suite (splat/tests.rs hard_cases_stay_finite).
+/// The hard cases of the GPU suite, on the CPU executor.
 #[test]
 fn hard_cases_stay_finite() {
-    let cam = origin_camera(40, 30);
-    let id = [1.0, 0.0, 0.0, 0.0];
-    let near = plain_scene(
-        3,
-        &[
-            ([0.0, 0.0, 0.01], id, -3.0, 2.0),
-            ([0.001, 0.0, 0.010_001], id, -5.0, 2.0),
-            ([0.0, 0.0, -1.0], id, -1.0, 2.0),
-            ([0.0, 0.0, 0.009], id, -1.0, 2.0),
-            ([0.1, 0.0, 2.0], id, -3.0, 0.0),
-        ],
-    );
-    let g = check_finite("near plane", &near, &cam, false);
-    for culled in [2, 3] {
-        assert_eq!(g.means[culled], [0.0; 3]);
-        assert_eq!(g.opacity_logits[culled], 0.0);
-    }
-
-    let mut non_finite = random_scene(40, 3, 21);
-    non_finite.means[3][1] = f32::NAN;
-    non_finite.quats[5][0] = f32::INFINITY;
-    non_finite.log_scales[7][2] = f32::NEG_INFINITY;
-    non_finite.features[8 * 3] = f32::NAN;
-    non_finite.log_scales[10] = [100.0; 3];
-    let g = check_finite("non-finite inputs", &non_finite, &camera(40, 30), false);
-    for culled in [3, 5, 7, 8, 10] {
-        assert_eq!(g.means[culled], [0.0; 3]);
-        assert_eq!(g.features[3 * culled..3 * culled + 3], [0.0; 3]);
-    }
-
-    let scales = plain_scene(
-        3,
-        &[
-            ([0.0, 0.0, 2.0], [0.3, 0.1, 0.2, 0.9], 1e-7f32.ln(), 1.0),
-            ([0.05, 0.0, 2.0], [0.3, 0.1, 0.2, 0.9], 1e3f32.ln(), 1.0),
-            ([0.0, 0.05, 0.02], [0.7, 0.1, 0.2, 0.1], 1e3f32.ln(), 1.0),
-        ],
-    );
-    check_finite("extreme scales", &scales, &cam, true);
-
-    let quats = plain_scene(
-        3,
-        &[
-            ([0.0, 0.0, 2.0], [0.0; 4], -2.5, 1.0),
-            ([0.02, 0.0, 2.0], [1e-30, 0.0, 0.0, 0.0], -2.5, 1.0),
-        ],
-    );
-    let g = check_finite("zero quaternion", &quats, &cam, true);
-    assert_eq!(g.quats[0], [0.0; 4]);
-    assert!(g.means[0].iter().any(|&v| v != 0.0));
-
-    let logits = plain_scene(
-        11,
-        &[
-            ([0.0, 0.0, 2.0], id, -2.5, 50.0),
-            ([0.01, 0.0, 2.5], id, -2.5, -50.0),
-            ([0.0, 0.01, 3.0], id, -2.5, 50.0),
-        ],
-    );
-    check_finite("opacity logits +-50", &logits, &cam, true);
-
-    let stacked: Vec<_> = (0..10_000)
-        .map(|k| ([0.0, 0.0, 2.0 + k as f32 * 1e-3], id, -4.0, 0.5))
-        .collect();
-    check_finite(
-        "10k stacked on one pixel",
-        &plain_scene(3, &stacked),
-        &cam,
-        true,
-    );
-
-    let mut off = random_scene(500, 3, 11);
-    for m in &mut off.means {
-        m[0] += 100.0;
-    }
-    let g = check_finite("all off-screen", &off, &cam, true);
-    assert!(g.features.iter().all(|&v| v == 0.0));
-
-    check_finite("no Gaussians", &OwnedGaussians::new(3), &cam, true);
-    check_finite("1x1 image", &random_scene(200, 3, 12), &camera(1, 1), true);
-    check_finite(
-        "1000x700 image",
-        &random_scene(3000, 3, 13),
-        &camera(1000, 700),
-        true,
-    );
-    check_finite(
-        "odd 37x23 image",
-        &random_scene(500, 3, 14),
-        &camera(37, 23),
-        true,
-    );
+    hard_cases_stay_finite_with(check_finite);
 }
 
 /// Needles at random angles: the row test must not drop a pixel the ellipse reaches.
