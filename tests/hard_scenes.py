@@ -96,7 +96,7 @@ def backprojected(scene_dir: Path, voxel_fraction: float = 0.004) -> dict[str, n
 @dataclass
 class Run:
     """One training run: its scene, the joints it reports (start -> end, world frame), the
-    stage-3 object (None when stage 2 found no motion), the log records and the notes."""
+    stage-3 result (None when stage 2 found no motion), the log records and the notes."""
 
     scene: Scene
     out_dir: Path
@@ -142,7 +142,7 @@ def run_stages(scene_dir: Path, out_dir: Path, config: TrainConfig) -> Run:
         refine = refine_parts(models, coarse, views, config, runner, None)
     finally:
         runner.log.close()
-    joints = [] if refine is None else refine.joints_now()
+    joints = [] if refine is None else refine.joints()
     return Run(scene, out_dir, joints, coarse.canonical, coarse.num_parts, refine,
                vars(coarse), dict(runner.timings), read_log(out_dir / "log.jsonl"),
                list(coarse.notes))

@@ -23,8 +23,9 @@ from gear import _core
 from gear.articulation import PartMotion
 from gear.metrics import match_parts
 from gear.pipeline.stage2.parts import coarse_init
-from gear.pipeline.stage3 import Refine
+from gear.pipeline.stage3 import joint_types
 from gear.pipeline.stage3.joint_types import classify_joints
+from gear.pipeline.stage3.shared import RefineState
 from gear.splats import Densifier, Gaussians
 from hard_scenes import (
     STAGE1_QUICK,
@@ -193,16 +194,16 @@ def test_identical_states_have_no_moving_part_in_stage2(tmp_path):
 
 
 class Spies:
-    """Records, during a run, every joint reading stage 3 scores (Refine.motion_loss) and every
+    """Records, during a run, every joint reading stage 3 scores (joint_types.motion_loss) and every
     stage-3 opacity reset (which Gaussians, their parts, opacities before and after)."""
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
         self.scored: list[tuple[list[dict], float]] = []
         self.resets: list[dict] = []
         spies = self
-        motion_loss, reset_opacity = Refine.motion_loss, Densifier.reset_opacity
+        motion_loss, reset_opacity = joint_types.motion_loss, Densifier.reset_opacity
 
-        def scored_loss(stage: Refine, candidate: PartMotion) -> float:
+        def scored_loss(stage: RefineState, candidate: PartMotion) -> float:
             value = motion_loss(stage, candidate)
             center = stage.gaussians["means"].detach().mean(dim=0).numpy()
             spies.scored.append((candidate.joints(center), value))
@@ -219,7 +220,7 @@ class Spies:
                                      protect=None if protect is None else protect.clone()))
             return n
 
-        monkeypatch.setattr(Refine, "motion_loss", scored_loss)
+        monkeypatch.setattr(joint_types, "motion_loss", scored_loss)
         monkeypatch.setattr(Densifier, "reset_opacity", spied_reset)
 
 
@@ -322,8 +323,8 @@ def test_float32_losses_stay_finite_on_every_built_in_object(runs, name):
 def test_half_turn_door_is_a_180_degree_hinge_chosen_by_the_images(runs):
     """safe180 (0 -> 180 degrees), the paper's documented failure: stage 2 must keep both the
     half turn and the slide for the door, stage 3 must score both on the target images
-    (photometric + depth, Refine.motion_loss) and keep the lower, and the result must be a hinge
-    of 180 +- 5 degrees, axis within 5 degrees, axis line within 5 cm (of a 0.6 m safe)."""
+    (photometric + depth, joint_types.motion_loss) and keep the lower, and the result must be a
+    hinge of 180 +- 5 degrees, axis within 5 degrees, axis line within 5 cm (of a 0.6 m safe)."""
     run, spies = runs.get("safe180")
     pairs, matching = matched(run)
     assert len(pairs) == 1, matching
@@ -368,7 +369,7 @@ def test_thin_handle_survives_opacity_resets(runs):
     their mean just before the first reset (measured: 0.09 before, 0.25 at the end)."""
     run, spies = runs.get("handle")
     assert run.refine is not None and run.num_parts == 2
-    threshold = run.refine.config.small_part_threshold
+    threshold = hard_config(**CASES["handle"].config).small_part_threshold
     assert len(spies.resets) == 2, "expected stage-3 resets at iterations 30 and 60"
     first = spies.resets[0]
     first_count = int((first["parts"] == 1).sum())

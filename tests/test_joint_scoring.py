@@ -1,4 +1,4 @@
-"""Joint-hypothesis scoring at classification (Refine.motion_loss): every reading gets the same
+"""Joint-hypothesis scoring at classification (joint_types.motion_loss): every reading gets the same
 short motion-only fine-tuning before it is scored, so the reading the model was trained under
 does not win merely because it had a head start. Rendered with the deterministic torch
 reference (rendering.rasterizer patched), on a tiny scene: a static back wall and a plank
@@ -19,6 +19,7 @@ from gear.data import View
 from gear.kinematics import deform, dq_to_rt, quat_angle
 from gear.pipeline.common import TrainView
 from gear.pipeline.stage3 import Refine
+from gear.pipeline.stage3.joint_types import classify, motion_loss
 from gear.splat_reference import rasterize_dense
 from gear.splats import Gaussians, rendering
 
@@ -103,10 +104,10 @@ def scoring_case(tune_steps: int) -> tuple[Refine, list]:
 
 def test_fine_tuned_scoring_picks_the_slide_the_head_start_hid():
     untuned, _ = scoring_case(tune_steps=0)
-    untuned.classify()
+    classify(untuned)
     assert not bool(untuned.motion.prismatic[1])  # scored as they come, the hinge wins
     tuned, _ = scoring_case(tune_steps=TUNE_STEPS)
-    tuned.classify()
+    classify(tuned)
     event = tuned.events[-1]
     assert event["types"] == ["prismatic"] and bool(tuned.motion.prismatic[1])
     # readings in order: the hinge, its slide, stage 2's slide; a slide won
@@ -123,9 +124,9 @@ def test_tuning_lowers_the_score_of_the_correct_reading_and_leaves_the_run_alone
     before_qd = stage.motion.qd.detach().clone()
     before_state = stage.generator.get_state()
     params = {k: v.detach().clone() for k, v in stage.gaussians.params.items()}
-    as_is = untuned_stage.motion_loss(copy.deepcopy(slide))
+    as_is = motion_loss(untuned_stage, copy.deepcopy(slide))
     tuned = copy.deepcopy(slide)
-    after = stage.motion_loss(tuned)
+    after = motion_loss(stage, tuned)
     assert after < as_is
     # the tuned copy moved towards the true pull (it started 25 % too far) and stayed a slide
     err = [np.linalg.norm(dq_to_rt(*(x[1].detach() for x in m.motion()))[1].numpy() - PULL)
@@ -143,4 +144,4 @@ def test_tuned_scores_are_reproducible():
     a, guesses = scoring_case(tune_steps=4)
     b, _ = scoring_case(tune_steps=4)
     slide = PartMotion.from_rt(guesses)
-    assert a.motion_loss(copy.deepcopy(slide)) == b.motion_loss(copy.deepcopy(slide))
+    assert motion_loss(a, copy.deepcopy(slide)) == motion_loss(b, copy.deepcopy(slide))

@@ -8,7 +8,7 @@ import scipy.linalg
 import torch
 from scipy.spatial.transform import Rotation
 
-from gear.articulation import PartMotion, extract_joint, resolve_ambiguous_joint
+from gear.articulation import PartMotion, extract_joint, joint_readings, resolve_ambiguous_joint
 from gear.kinematics import (
     deform,
     dq_apply,
@@ -294,6 +294,12 @@ def test_part_motion_types_and_errors():
     assert PartMotion(1).motion()[0].shape == (1, 4)
 
 
+def resolve_by(motion, k, score, extra=()):
+    """resolve_ambiguous_joint on the readings of part k, each scored by `score` in order."""
+    readings = joint_readings(motion, k, extra)
+    return resolve_ambiguous_joint(motion, k, readings, [score(c) for _, c in readings])
+
+
 def test_resolve_ambiguous_joint_picks_lowest_score():
     true_rot, true_t = hinge_rt([0, 0, 1], [0.5, 0, 0], 170.0)
     stuck = hinge_rt([0, 0, 1], [0.5, 0, 0], 4.0)
@@ -305,19 +311,17 @@ def test_resolve_ambiguous_joint_picks_lowest_score():
         qr, qd = (x.detach() for x in candidate.motion())
         return float((dq_apply(qr[1], qd[1], probe) - target).square().sum())
 
-    chosen = resolve_ambiguous_joint(
-        motion, 1, score, extra=[(np.eye(3), true_t), (true_rot, true_t)]
-    )
+    chosen = resolve_by(motion, 1, score, extra=[(np.eye(3), true_t), (true_rot, true_t)])
     assert chosen.name == "revolute-extra1" and not bool(motion.prismatic[1])
     assert motion.joints(np.zeros(3))[0]["angle_deg"] == pytest.approx(170.0, abs=1e-3)
     # A drawer that picked up a spurious 4-degree twist: the slide keeping its translation wins.
     twisted = Rotation.from_rotvec([0, 0, np.deg2rad(4.0)]).as_matrix()
     motion = PartMotion.from_rt([(twisted, [0.3, 0.0, 0.0])])
     target = probe + torch.tensor([0.3, 0.0, 0.0])
-    assert resolve_ambiguous_joint(motion, 1, score).name == "prismatic"
+    assert resolve_by(motion, 1, score).name == "prismatic"
     assert bool(motion.prismatic[1]) and score(motion) < 1e-10
     with pytest.raises(ValueError, match="non-finite"):
-        resolve_ambiguous_joint(motion, 1, lambda _: float("nan"))
+        resolve_by(motion, 1, lambda _: float("nan"))
 
 
 def test_resolve_ambiguous_joint_keeps_the_tuned_winner():
@@ -325,14 +329,14 @@ def test_resolve_ambiguous_joint_keeps_the_tuned_winner():
     motion = PartMotion.from_rt([hinge_rt([0, 0, 1], [0.5, 0, 0], 4.0)])
     tuned_t = torch.tensor([0.31, 0.02, 0.0])
 
-    def tune_then_score(candidate):  # stands in for Refine.motion_loss (tune, then render)
+    def tune_then_score(candidate):  # stands in for joint_types.motion_loss (tune, render)
         if bool(candidate.prismatic[1]):
             qr, qd = dq_of(np.eye(3)[None], tuned_t.numpy()[None], torch.float32)
             candidate.set_part(1, qr[0], qd[0], prismatic=True)
             return 0.0
         return 1.0
 
-    assert resolve_ambiguous_joint(motion, 1, tune_then_score).name == "prismatic"
+    assert resolve_by(motion, 1, tune_then_score).name == "prismatic"
     assert bool(motion.prismatic[1])
     joint = motion.joints(np.zeros(3))[0]  # the untuned slide would travel 0.035 along -y
     assert joint["distance"] == pytest.approx(float(tuned_t.norm()), abs=1e-5)

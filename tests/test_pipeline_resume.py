@@ -14,10 +14,12 @@ import numpy as np
 import pytest
 import torch
 
+from gear.articulation import PartMotion
 from gear.config import make_config
 from gear.pipeline import runner as runner_mod
 from gear.pipeline.stage1 import Stage1Result
 from gear.pipeline.stage2 import Stage2Result
+from gear.pipeline.stage3 import Stage3Result
 from gear.splat_reference import rasterize_dense
 from gear.splats import Gaussians, rendering
 from gear.synth import generate
@@ -106,3 +108,23 @@ def test_stage_results_round_trip_through_their_checkpoint_form():
     assert (again.canonical, again.target, again.num_parts) == ("end", "start", 2)
     assert torch.equal(again.logits, coarse.logits) and again.notes == ["n"]
     assert np.array_equal(again.motions[0][1], np.ones(3))
+
+
+def test_stage3_result_round_trips_through_its_checkpoint_form():
+    g = Gaussians(dict(means=torch.randn(6, 3), quats=torch.randn(6, 4),
+                       log_scales=torch.randn(6, 3), opacity=torch.randn(6),
+                       colors=torch.randn(6, 3), logits=torch.randn(6, 3)))
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    motion = PartMotion.from_rt([(turn, np.array([0.1, 0.0, 0.0])),
+                                 (np.eye(3), np.array([0.0, 0.2, 0.0]))])
+    motion.set_prismatic(2)
+    refined = Stage3Result(g, motion, "end")
+    back = Stage3Result.from_checkpoint(refined.to_checkpoint())
+    assert back.canonical == "end" and back.motion.num_parts == 3
+    for name, value in g.params.items():
+        assert torch.equal(back.gaussians[name], value.detach()), name
+    assert torch.equal(back.motion.prismatic, motion.prismatic)
+    for got, want in zip(back.motion.motion(), motion.motion(), strict=True):
+        assert torch.equal(got, want)
+    assert back.joints() == refined.joints()
+    assert [j["type"] for j in back.joints()] == ["revolute", "prismatic"]

@@ -205,14 +205,16 @@ def test_e_steps_train_gaussians_not_motion_and_m_steps_only_the_motion():
 
 
 def test_joint_classification_makes_a_small_hinge_prismatic():
+    from gear.pipeline.stage3.joint_types import classify
+
     stage = refine_stage(resolve_ambiguous_joints=False)
-    stage.classify()
+    classify(stage)
     assert bool(stage.motion.prismatic[1])
     qr, _ = stage.motion.motion()
     assert torch.allclose(qr[1], torch.tensor([1.0, 0.0, 0.0, 0.0]))
     # the [beyond] rule scores the readings on the target views and keeps a valid one
     stage = refine_stage(resolve_ambiguous_joints=True)
-    stage.classify()
+    classify(stage)
     assert stage.events[-1]["event"] == "joint_classification"
     assert torch.isfinite(torch.cat(stage.motion.motion())).all()
 

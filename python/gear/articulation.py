@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -198,25 +198,38 @@ def joint_hypotheses(
     return out
 
 
-def resolve_ambiguous_joint(
-    motion: PartMotion,
-    k: int,
-    score: Callable[[PartMotion], float],
-    extra: Sequence[tuple[np.ndarray, np.ndarray]] = (),
-) -> JointHypothesis:
-    """Keeps every reading of an ambiguous joint and picks the one the images prefer.
-
-    `score(candidate)` gets a copy of `motion` with part k set to one hypothesis of
-    joint_hypotheses(motion, k, extra) and returns its photometric + depth loss (lower is
-    better; it may fine-tune the copy first). The winner's part k, as the scorer left it (tuned,
-    when it tunes: the reading it scored, not the untuned guess), is written into `motion`, and
-    its hypothesis returned. Ground truth plays no part.
-    """
-    best: tuple[float, JointHypothesis, PartMotion] | None = None
+def joint_readings(
+    motion: PartMotion, k: int, extra: Sequence[tuple[np.ndarray, np.ndarray]] = ()
+) -> list[tuple[JointHypothesis, PartMotion]]:
+    """Each hypothesis of joint_hypotheses(motion, k, extra) with its own copy of `motion`
+    whose part k is set to it: the readings a caller scores (and may tune in place)."""
+    readings = []
     for hyp in joint_hypotheses(motion, k, extra):
         candidate = copy.deepcopy(motion)
         candidate.set_part(k, hyp.qr, hyp.qd, hyp.prismatic)
-        value = float(score(candidate))
+        readings.append((hyp, candidate))
+    return readings
+
+
+def resolve_ambiguous_joint(
+    motion: PartMotion,
+    k: int,
+    readings: Sequence[tuple[JointHypothesis, PartMotion]],
+    losses: Sequence[float],
+) -> JointHypothesis:
+    """Keeps the reading of an ambiguous joint the images prefer.
+
+    `readings` come from joint_readings(motion, k, ...), `losses` are their photometric +
+    depth losses in the same order (lower is better), computed by the caller, which may have
+    fine-tuned each copy first. The winner's part k, as the caller left it (the reading it
+    scored, not the untuned guess), is written into `motion`, and its hypothesis returned.
+    Ground truth plays no part.
+    """
+    if len(readings) != len(losses) or not readings:
+        raise ValueError(f"losses: expected one per reading ({len(readings)}), got {len(losses)}")
+    best: tuple[float, JointHypothesis, PartMotion] | None = None
+    for (hyp, candidate), loss in zip(readings, losses, strict=True):
+        value = float(loss)
         if not math.isfinite(value):
             raise ValueError(f"score: non-finite loss {value} for the {hyp.name} hypothesis")
         if best is None or value < best[0]:

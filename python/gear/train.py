@@ -29,8 +29,7 @@ from gear.pipeline.common import TrainView
 from gear.pipeline.runner import Runner, stops_interrupt
 from gear.pipeline.stage1 import reconstruct_states
 from gear.pipeline.stage2 import Stage2Result, initialise_parts
-from gear.pipeline.stage3 import refine_parts
-from gear.pipeline.stage3.joints import object_center, start_to_end_joints
+from gear.pipeline.stage3 import Stage3Result, refine_parts
 from gear.run_folder import RunFolder
 
 
@@ -93,7 +92,7 @@ def _train(scene: Scene, scene_dir: Path, folder: RunFolder, config: TrainConfig
             g, motion, joints = models[coarse.canonical], None, []
         else:
             g, motion, dropped = outputs.drop_empty_parts(refined.gaussians, refined.motion)
-            joints = start_to_end_joints(motion, coarse.canonical, object_center(g))
+            joints = Stage3Result(g, motion, refined.canonical).joints()
             if dropped:
                 notes.append(f"dropped {len(dropped)} part(s) left without Gaussians "
                              f"({', '.join(map(str, dropped))}): {len(joints)} movable part(s) "

@@ -21,62 +21,62 @@ from gear.pipeline.stage3.shared import RefineState
 from gear.splats import render
 
 
-class EStep(RefineState):
-    def gaussian_step(self, it: int, phase: str) -> dict[str, float]:
-        """E-step (motion frozen, soft assignment, part supervision) or a joint-optimisation
-        step ('J': motion, Gaussians and logits all train)."""
-        c, g, motion = self.config, self.gaussians, self.motion
-        g.set_lr("means", means_lr(c, it, self.total) * self.extent)
-        qr, qd = motion.motion(1.0)
-        if phase == "E":
-            qr, qd = qr.detach(), qd.detach()
-        logits = g["logits"]
-        weights = torch.softmax(logits, dim=1)
-        index, view, bg = self.target_view()
-        means_d, quats_d = deform(g["means"], g["quats"], weights, qr, qd)
-        means_d.retain_grad()
-        rgb = g.rgb()
-        out = render(g, view.camera, bg, pose=(means_d, quats_d), features=rgb,
-                     depth=view.depth is not None)
-        terms = image_terms(out, view, bg, c)
+def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
+    """E-step (motion frozen, soft assignment, part supervision) or a joint-optimisation step
+    ('J': motion, Gaussians and logits all train) on `state`."""
+    c, g, motion = state.config, state.gaussians, state.motion
+    g.set_lr("means", means_lr(c, it, state.total) * state.extent)
+    qr, qd = motion.motion(1.0)
+    if phase == "E":
+        qr, qd = qr.detach(), qd.detach()
+    logits = g["logits"]
+    weights = torch.softmax(logits, dim=1)
+    index, view, bg = state.target_view()
+    means_d, quats_d = deform(g["means"], g["quats"], weights, qr, qd)
+    means_d.retain_grad()
+    rgb = g.rgb()
+    out = render(g, view.camera, bg, pose=(means_d, quats_d), features=rgb,
+                 depth=view.depth is not None)
+    terms = image_terms(out, view, bg, c)
 
-        anchor = render(g, view.camera, bg, features=rgb, depth=True)
-        frozen_rgb, frozen_alpha, frozen_depth = self.anchor(index, view)
-        anchor_target = frozen_rgb + (1 - frozen_alpha)[..., None] * bg
-        terms["anchor"] = c.lambda_anchor * (
-            photometric(anchor.features, anchor_target, c.lambda_dssim)
-            + c.lambda_depth * depth_log_l1(anchor.depth, frozen_depth)
-        )
-        terms["opacity"] = c.lambda_opacity * opacity_binarisation(g["opacity"])
-        terms.update(self.segmentation_terms(logits))
-        check_finite(terms, self.name, it)
-        loss = sum(terms.values())
-        g.optimizer.zero_grad(set_to_none=True)
-        self.motion_optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.densifier.accumulate(means_d, view.camera)
-        g.optimizer.step()
-        if phase == "J":
-            self.motion_optimizer.step()
-        return {k: v.item() for k, v in terms.items()}
+    anchor = render(g, view.camera, bg, features=rgb, depth=True)
+    frozen_rgb, frozen_alpha, frozen_depth = state.anchor(index, view)
+    anchor_target = frozen_rgb + (1 - frozen_alpha)[..., None] * bg
+    terms["anchor"] = c.lambda_anchor * (
+        photometric(anchor.features, anchor_target, c.lambda_dssim)
+        + c.lambda_depth * depth_log_l1(anchor.depth, frozen_depth)
+    )
+    terms["opacity"] = c.lambda_opacity * opacity_binarisation(g["opacity"])
+    terms.update(segmentation_terms(state, logits))
+    check_finite(terms, state.name, it)
+    loss = sum(terms.values())
+    g.optimizer.zero_grad(set_to_none=True)
+    state.motion_optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    state.densifier.accumulate(means_d, view.camera)
+    g.optimizer.step()
+    if phase == "J":
+        state.motion_optimizer.step()
+    return {k: v.item() for k, v in terms.items()}
 
-    def segmentation_terms(self, logits: torch.Tensor) -> dict:
-        """Region-voted pseudo-labels on a rendered logit image (CE) + KNN smoothness."""
-        c, g = self.config, self.gaussians
-        terms = {"knn": c.lambda_knn * knn_consistency_loss(logits, self.neighbours())}
-        if not self.region_views:
-            return terms
-        view = self.pick(self.region_views)
-        # Only the K logit channels: blending is per channel, so colour channels carried
-        # along would change nothing but the cost of the render.
-        logit_image = render(g, view.camera, features=logits).features
-        prob = torch.softmax(logit_image.detach(), dim=-1).numpy()
-        labels = region_pseudo_labels(
-            prob, view.regions, self.motion.prismatic.numpy(), gamma=c.gamma_prism,
-            min_conf=c.pseudo_min_conf, min_gap=c.pseudo_min_gap, min_area=c.pseudo_min_area,
-        )
-        fg = view.alpha > 0.5
-        terms["sam"] = c.lambda_sam * sam_ce_loss(
-            logit_image, torch.as_tensor(labels), fg, static_weight=c.static_class_weight
-        )
+
+def segmentation_terms(state: RefineState, logits: torch.Tensor) -> dict:
+    """Region-voted pseudo-labels on a rendered logit image (CE) + KNN smoothness."""
+    c, g = state.config, state.gaussians
+    terms = {"knn": c.lambda_knn * knn_consistency_loss(logits, state.neighbours())}
+    if not state.region_views:
         return terms
+    view = state.pick(state.region_views)
+    # Only the K logit channels: blending is per channel, so colour channels carried
+    # along would change nothing but the cost of the render.
+    logit_image = render(g, view.camera, features=logits).features
+    prob = torch.softmax(logit_image.detach(), dim=-1).numpy()
+    labels = region_pseudo_labels(
+        prob, view.regions, state.motion.prismatic.numpy(), gamma=c.gamma_prism,
+        min_conf=c.pseudo_min_conf, min_gap=c.pseudo_min_gap, min_area=c.pseudo_min_area,
+    )
+    fg = view.alpha > 0.5
+    terms["sam"] = c.lambda_sam * sam_ce_loss(
+        logit_image, torch.as_tensor(labels), fg, static_weight=c.static_class_weight
+    )
+    return terms

@@ -7,15 +7,14 @@ from gear.pipeline.common import check_finite
 from gear.pipeline.stage3.shared import RefineState
 
 
-class MStep(RefineState):
-    def motion_step(self, it: int) -> dict[str, float]:
-        """The motion alone has to explain `m_step_views` target views: holding the Gaussians
-        keeps them from absorbing the motion's error, and saves the anchor render and their
-        backward (docs/method.md, "Stage 3: M-step")."""
-        drawn = [self.target_view()[1:] for _ in range(self.config.m_step_views)]
-        terms = self.held_image_terms(self.motion, *zip(*drawn, strict=True))
-        check_finite(terms, self.name, it)
-        self.motion_optimizer.zero_grad(set_to_none=True)
-        sum(terms.values()).backward()
-        self.motion_optimizer.step()
-        return {k: v.item() for k, v in terms.items()}
+def motion_step(state: RefineState, it: int) -> dict[str, float]:
+    """The motion of `state` alone has to explain `m_step_views` target views: holding the
+    Gaussians keeps them from absorbing the motion's error, and saves the anchor render and
+    their backward (docs/method.md, "Stage 3: M-step")."""
+    drawn = [state.target_view()[1:] for _ in range(state.config.m_step_views)]
+    terms = state.held_image_terms(state.motion, *zip(*drawn, strict=True))
+    check_finite(terms, state.name, it)
+    state.motion_optimizer.zero_grad(set_to_none=True)
+    sum(terms.values()).backward()
+    state.motion_optimizer.step()
+    return {k: v.item() for k, v in terms.items()}

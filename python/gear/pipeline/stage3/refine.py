@@ -1,11 +1,12 @@
 """Stage 3's entry point: the canonical model with part logits and per-part motions, refined
 by alternating E- and M-steps, with the joint types decided once on the way
-(docs/method.md, "Stage 3"). `refine_parts` -> the refined `Refine` (its Gaussians, part
-motions and joints; None for a static object)."""
+(docs/method.md, "Stage 3"). `refine_parts` -> a `Stage3Result` (the refined Gaussians and
+part motions; None for a static object)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 from gear import checkpoint
 from gear.articulation import PartMotion
@@ -13,37 +14,64 @@ from gear.config import TrainConfig
 from gear.pipeline.common import TrainView
 from gear.pipeline.runner import Runner
 from gear.pipeline.stage2 import Stage2Result
-from gear.pipeline.stage3.estep import EStep
-from gear.pipeline.stage3.joint_types import JointTypes
+from gear.pipeline.stage3.estep import gaussian_step
+from gear.pipeline.stage3.joint_types import classify
 from gear.pipeline.stage3.joints import object_center, start_to_end_joints
-from gear.pipeline.stage3.mstep import MStep
+from gear.pipeline.stage3.mstep import motion_step
+from gear.pipeline.stage3.shared import RefineState
 from gear.splats import Gaussians
 
 
-class Refine(EStep, MStep, JointTypes):
-    """The per-iteration work of stage 3: which step the schedule asks for, the joint-type
-    decision at its iteration, densification outside the M-phases."""
+@dataclass
+class Stage3Result:
+    """The refined canonical Gaussians (with their part logits), the part motions (canonical
+    -> target, joint types decided) and the canonical state."""
+
+    gaussians: Gaussians
+    motion: PartMotion
+    canonical: str
+
+    def joints(self) -> list[dict]:
+        """joints.json entries of the motions (start -> end)."""
+        return start_to_end_joints(self.motion, self.canonical, object_center(self.gaussians))
+
+    def to_checkpoint(self) -> dict:
+        return {"gaussians": checkpoint.gaussians_state(self.gaussians),
+                "num_parts": self.motion.num_parts, "motion": self.motion.state_dict(),
+                "canonical": self.canonical}
+
+    @classmethod
+    def from_checkpoint(cls, state: dict) -> Stage3Result:
+        motion = PartMotion(state["num_parts"])
+        motion.load_state_dict(state["motion"])
+        return cls(checkpoint.gaussians_from_state(state["gaussians"]), motion,
+                   state["canonical"])
+
+
+class Refine(RefineState):
+    """The per-iteration work of stage 3 on its state: which step the schedule asks for
+    (E-step, M-step or joint optimisation), the joint-type decision at its iteration,
+    densification outside the M-phases; and what the run loop logs and checkpoints."""
 
     def step(self, it: int) -> dict[str, float]:
         phase = self.phase(it)
         if it == self.config.joint_classify_iteration:
-            self.classify()
-        terms = self.motion_step(it) if phase == "M" else self.gaussian_step(it, phase)
+            classify(self)
+        terms = motion_step(self, it) if phase == "M" else gaussian_step(self, it, phase)
         self.maintain(it)
         return terms
 
-    def joints_now(self) -> list[dict]:
-        """joints.json entries of the current motions (start -> end)."""
-        return start_to_end_joints(self.motion, self.canonical, object_center(self.gaussians))
+    def result(self) -> Stage3Result:
+        return Stage3Result(self.gaussians, self.motion, self.canonical)
 
     def status(self) -> str:
         return " ".join(
             f"j{j['part']}={j['angle_deg']:.1f}°" if j["type"] == "revolute"
-            else f"j{j['part']}={j['distance']:.3f}" for j in self.joints_now()
+            else f"j{j['part']}={j['distance']:.3f}" for j in self.result().joints()
         )
 
     def snapshot(self) -> dict:
-        return {"joints": self.joints_now()}
+        return {"joints": self.result().joints()}
 
     def state_dict(self) -> dict:
         current = self._neighbours_generation == self.gaussians.generation
@@ -74,14 +102,16 @@ class Refine(EStep, MStep, JointTypes):
 
 def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
                  views: dict[str, Sequence[TrainView]], config: TrainConfig, runner: Runner,
-                 resume: dict | None) -> Refine | None:
+                 resume: dict | None) -> Stage3Result | None:
     """Stage 3 from stage 2's parts and the canonical stage-1 model, or continued from
     `resume`; None when stage 2 found a single (static) part."""
     c = config
     if coarse.num_parts == 1:
         runner.log.say("no motion detected between the two states: one static part")
         return None
-    if resume is not None and resume["stage"] in ("stage3", "stage3-done"):
+    if resume is not None and resume["stage"] == "stage3-done":
+        return Stage3Result.from_checkpoint(resume["refined"])
+    if resume is not None and resume["stage"] == "stage3":
         g = checkpoint.gaussians_from_state(resume["current"])
         frozen = checkpoint.gaussians_from_state(resume["frozen"])
         start = resume["iteration"]
@@ -97,5 +127,7 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
     if start:
         stage.load_state_dict(resume["stage_state"])
     runner.run(stage, start, c.stage3_iterations)
-    runner.save("stage3-done", c.stage3_iterations, stage)
-    return stage
+    result = stage.result()
+    runner.finished("refined", result.to_checkpoint())
+    runner.save("stage3-done", c.stage3_iterations)
+    return result
