@@ -56,7 +56,7 @@ class CoarseInit:
     voxel_size: float
     notes: list[str] = field(default_factory=list)
     # Per movable part: its motion first, then any near-tie of the other kind (hinge vs slide)
-    # for em.classify_joints to decide by the images.
+    # for stage3.joint_types.classify_joints to decide by the images.
     candidates: list[list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=list)
 
 
