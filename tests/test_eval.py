@@ -15,6 +15,7 @@ from gear.cli import main
 from gear.data import GtJoint, View, write_scene
 from gear.evaluate import evaluate
 from gear.metrics import chamfer
+from gear.run_folder import COMPLETE
 
 RES = 16
 OBJ = 102  # object colour in 8-bit steps: exact through PNG round trips
@@ -80,6 +81,7 @@ def make_output(out, d: float = 0.1):
     ]
     (out / "joints.json").parent.mkdir(parents=True, exist_ok=True)
     (out / "joints.json").write_text(json.dumps({"canonical": "start", "joints": joints}))
+    (out / COMPLETE).write_text("{}\n")  # a finished run: eval reads only those
     (out / "log.jsonl").write_text(
         json.dumps({"event": "timings", "stage1": 12.5, "stage2": 0.5}) + "\n"
         + json.dumps({"event": "timings", "stage1": 12.5, "stage2": 0.5, "stage3": 30.0}) + "\n"
