@@ -180,6 +180,7 @@ def test_eval_without_ground_truth_says_what_is_missing(tmp_path, capsys):
     scene = make_scene(tmp_path / "scene", with_gt=False)
     out = tmp_path / "out"
     out.mkdir()
+    (out / COMPLETE).write_text("{}\n")  # a finished run whose outputs are all gone
     assert main(["eval", str(out), str(scene)]) == 0
     printed = capsys.readouterr().out
     m = json.loads((out / "metrics.json").read_text())
