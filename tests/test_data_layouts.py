@@ -363,6 +363,9 @@ def test_training_on_a_nerfstudio_capture_says_what_it_uses_in_part(fridge, tmp_
     said = [r["message"] for r in log if r.get("message", "").startswith("warning:")]
     assert len(said) == 1 and "depth on 3 of 4 end training views" in said[0], said
     assert "none on end/train/train_0002" in said[0]
+    inputs = [r["message"] for r in log if r.get("message", "").startswith("inputs:")]
+    assert len(inputs) == 1 and "end: 4 training views with object masks, depth on 3 (" in \
+        inputs[0], inputs
     metrics = evaluate(tmp_path / "out", root)
     assert metrics["psnr_views"] == 4 and metrics["psnr"] > 10.0  # rendered vs test photos
     assert metrics["axis_ang"] is None  # no gt/: joint errors are skipped, not faked

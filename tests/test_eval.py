@@ -15,6 +15,7 @@ from gear.cli import main
 from gear.data import GtJoint, View, write_scene
 from gear.evaluate import evaluate
 from gear.metrics import chamfer
+from gear.run_folder import COMPLETE
 
 RES = 16
 OBJ = 102  # object colour in 8-bit steps: exact through PNG round trips
@@ -80,6 +81,7 @@ def make_output(out, d: float = 0.1):
     ]
     (out / "joints.json").parent.mkdir(parents=True, exist_ok=True)
     (out / "joints.json").write_text(json.dumps({"canonical": "start", "joints": joints}))
+    (out / COMPLETE).write_text("{}\n")  # a finished run: eval reads only those
     (out / "log.jsonl").write_text(
         json.dumps({"event": "timings", "stage1": 12.5, "stage2": 0.5}) + "\n"
         + json.dumps({"event": "timings", "stage1": 12.5, "stage2": 0.5, "stage3": 30.0}) + "\n"
@@ -178,6 +180,7 @@ def test_eval_without_ground_truth_says_what_is_missing(tmp_path, capsys):
     scene = make_scene(tmp_path / "scene", with_gt=False)
     out = tmp_path / "out"
     out.mkdir()
+    (out / COMPLETE).write_text("{}\n")  # a finished run whose outputs are all gone
     assert main(["eval", str(out), str(scene)]) == 0
     printed = capsys.readouterr().out
     m = json.loads((out / "metrics.json").read_text())

@@ -171,7 +171,7 @@ def test_colour_toggle_and_visibility(viewer):
 def test_view_refuses_a_bad_run_folder(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nope")]) == 1
     err = capsys.readouterr().err.strip()
-    assert err.startswith("gear: error:") and "not a folder" in err and "\n" not in err
+    assert err.startswith("gear: error:") and "no such output folder" in err and "\n" not in err
 
 
 def test_view_refuses_a_busy_port(out_dir, capsys):

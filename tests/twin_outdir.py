@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from gear.camera import Camera
 from gear.outputs import write_ply
+from gear.run_folder import COMPLETE, write_atomic
 from gear.splats import Gaussians
 
 HINGE = {"part": 1, "type": "revolute", "axis": [0.0, 0.0, 1.0], "origin": [0.25, -0.25, 0.1],
@@ -105,6 +106,7 @@ def make_out_dir(root: Path, canonical: str = "start", seed: int = 0) -> Path:
             if k:
                 box.apply_transform(joint_matrix((HINGE, SLIDE)[k - 1], fraction))
             box.export(folder / f"{name}.ply")
+    write_atomic(root / COMPLETE, "{}\n")  # a finished run, as train's last write
     return root
 
 
@@ -164,4 +166,5 @@ def make_gt_out_dir(root: Path, object_name: str, seed: int = 0,
         folder.mkdir(parents=True, exist_ok=True)
         for name, mesh in obj.gt_meshes(state).items():
             mesh.export(folder / f"{name}.ply")
+    write_atomic(root / COMPLETE, "{}\n")  # a finished run, as train's last write
     return root

@@ -11,6 +11,7 @@ import importlib
 import pkgutil
 import sys
 from collections.abc import Callable, Sequence
+from typing import NoReturn
 
 import gear.commands
 from gear import __version__
@@ -23,8 +24,16 @@ class UserError(Exception):
     """A problem the user can fix (bad input, missing file): printed as one line, exit 1."""
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse, but a bad command line is one line on stderr (exit 2), not the usage block:
+    the same shape as every other gear error. Subcommand parsers inherit the class."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="gear", description="Articulated digital twins from two states."
     )
     parser.add_argument("--version", action="version", version=f"gear {__version__}")
@@ -43,7 +52,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("gear: interrupted", file=sys.stderr)
         return 130
-    except (UserError, RuntimeError, ValueError, FileNotFoundError) as err:
-        # Expected failures (bad input, GPU unavailable): one line, no traceback.
-        print(f"gear: error: {err}", file=sys.stderr)
+    except (UserError, RuntimeError, ValueError, OSError) as err:
+        # Expected failures (bad input, a path that is not what it should be, an unwritable
+        # folder, GPU unavailable): one line, no traceback.
+        print(f"gear: error: {_message(err)}", file=sys.stderr)
         return 1
+
+
+def _message(err: Exception) -> str:
+    """The error's text; an OSError's as "path: what", without Python's "[Errno N]"."""
+    if isinstance(err, OSError) and err.filename is not None and err.strerror:
+        return f"{err.filename}: {err.strerror}"
+    return str(err)

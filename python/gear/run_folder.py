@@ -160,6 +160,24 @@ class RunFolder:
         self.close()
 
 
+def require_finished(out_dir: Path) -> Path:
+    """`out_dir` when it holds a finished run (its completion marker is there); otherwise a
+    one-line RunFolderError saying what it holds instead. Commands that read a run's outputs
+    (eval, render, view, export) call this, so they never read half a run."""
+    out_dir = Path(out_dir)
+    if not out_dir.exists():
+        raise RunFolderError(f"{out_dir}: no such output folder")
+    if not out_dir.is_dir():
+        raise RunFolderError(f"{out_dir}: is a file, not the output folder of `gear train`")
+    if (out_dir / COMPLETE).is_file():
+        return out_dir
+    if any((out_dir / name).exists() for name in RUN_ENTRIES):
+        raise RunFolderError(
+            f"{out_dir}: its run did not finish (no {COMPLETE}); continue it with "
+            f"`gear train SCENE --out {out_dir} --resume`, or start it over with --overwrite")
+    raise RunFolderError(f"{out_dir}: not the output folder of `gear train` (no {COMPLETE})")
+
+
 def write_atomic(path: Path, text: str) -> None:
     """`text` to `path` through a temporary name, so a reader never sees half a file."""
     tmp = path.with_name(path.name + ".tmp")

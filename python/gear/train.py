@@ -22,7 +22,7 @@ import torch
 from gear import checkpoint, outputs
 from gear.config import TrainConfig
 from gear.data import load_scene
-from gear.data.coverage import input_warnings
+from gear.data.coverage import input_warnings, inputs_used
 from gear.data.scene import STATES, Scene
 from gear.device import limit_torch_threads
 from gear.pipeline.common import TrainView
@@ -66,6 +66,7 @@ def _train(scene: Scene, scene_dir: Path, folder: RunFolder, config: TrainConfig
     runner = Runner(out_dir, config, quiet, resumed=state, scene=fingerprint)
     for note in folder.notes:
         runner.log.say(note)
+    runner.log.say(inputs_used(scene))
     for warning in input_warnings(scene):  # an input used only in part is said, never silent
         runner.log.say(f"warning: {warning}")
     if state is not None:

@@ -5,6 +5,7 @@ training would use an input only in part."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from gear.data.scene import STATES, Scene, View
 
@@ -44,6 +45,13 @@ def _coverage(scene: Scene, kind: str) -> str:
     return ", ".join(f"{s} {sp} {n}/{total}" for s, n, total, sp in per_state if total)
 
 
+def _depth_on_object(scene: Scene) -> str:
+    from gear.data.coverage import depth_on_object
+
+    fraction = depth_on_object(scene.all_views())
+    return "" if fraction is None else f" ({100 * fraction:.0f}% of object pixels)"
+
+
 def summary(scene: Scene) -> str:
     """What the scene holds, one aspect per line (the first line says it is ok)."""
     counts = ", ".join(
@@ -56,7 +64,7 @@ def summary(scene: Scene) -> str:
         f"  views:         {counts}",
         f"  intrinsics:    {_intrinsics(scene.all_views())}",
         "  object masks:  every view",
-        f"  depth:         {_coverage(scene, 'depth')}",
+        f"  depth:         {_coverage(scene, 'depth')}{_depth_on_object(scene)}",
         f"  region masks:  {_coverage(scene, 'regions')}",
         f"  GT part ids:   {_coverage(scene, 'parts')}",
     ]
@@ -67,9 +75,15 @@ def summary(scene: Scene) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from gear.cli import UserError
     from gear.data.coverage import input_warnings
     from gear.data.load import load_and_validate
 
+    # A path that is no folder at all is a mistyped argument, not a scene with problems.
+    if not Path(args.scene).exists():
+        raise UserError(f"{args.scene}: no such scene folder")
+    if not Path(args.scene).is_dir():
+        raise UserError(f"{args.scene}: is a file, not a scene folder")
     scene, problems = load_and_validate(args.scene)
     for problem in problems:
         print(problem)

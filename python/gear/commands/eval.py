@@ -25,7 +25,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from gear.cli import UserError
+    from gear.run_folder import require_finished
 
+    if args.samples < 1:
+        raise UserError(f"--samples must be at least 1, got {args.samples}")
+    require_finished(args.out_dir)
     try:
         metrics = evaluate(args.out_dir, args.scene_dir, samples=args.samples, seed=args.seed,
                            background=args.background)

@@ -49,7 +49,9 @@ def run(args: argparse.Namespace) -> int:
     from gear.export.assembly import ExportOptions
     from gear.export.bundle import export_twin
     from gear.export.urdf import roundtrip_errors
+    from gear.run_folder import require_finished
 
+    require_finished(args.out_dir)
     options = ExportOptions(
         faces=args.faces, density=args.density, mass=args.mass, widen=args.widen,
         damping=args.damping, friction=args.friction, effort=args.effort,

@@ -163,12 +163,13 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from gear.run_folder import require_finished
     from gear.twin import Twin
 
     if args.t is None:
         args.t = [] if args.video is not None else [0.0, 0.5, 1.0]
     _check_args(args)
-    twin = Twin.load(args.out_dir)
+    twin = Twin.load(require_finished(args.out_dir))
     out_dir = args.out or args.out_dir / "twin_renders"
     up = up_vector(args.up)
     background = torch.tensor(args.background, dtype=torch.float32)

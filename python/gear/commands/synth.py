@@ -63,6 +63,10 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--out DIR is required")
     if (args.start or args.end) and not args.urdf:
         raise UserError("--start/--end apply to --urdf objects only")
+    for name, value, low in (("--res", args.res, 8), ("--views", args.views, 1),
+                             ("--test-views", args.test_views, 0)):
+        if value < low:
+            raise UserError(f"{name} must be at least {low}, got {value}")
     effects = parse_effects(args.effects)
     if args.urdf:
         from gear.synth.urdf import load_urdf

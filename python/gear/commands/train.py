@@ -52,6 +52,8 @@ def run(args: argparse.Namespace) -> int:
         result = train(args.scene, args.out, config, resume=args.resume,
                        overwrite=args.overwrite, quiet=args.quiet)
     except SceneError as err:
+        if len(err.problems) == 1:  # e.g. a path that is no scene: one line
+            raise UserError(f"invalid scene: {err.problems[0]}") from err
         raise UserError("invalid scene:\n  " + "\n  ".join(err.problems)) from err
     print_result(result, args.scene, args.out)
     return 0

@@ -27,12 +27,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from gear.cli import UserError
+    from gear.run_folder import require_finished
     from gear.twin import Twin
     from gear.view.server import TwinViewer, port_is_free
 
     if not 1 <= args.port <= 65535:
         raise UserError(f"--port must be in 1..65535, got {args.port}")
-    twin = Twin.load(args.out_dir)
+    twin = Twin.load(require_finished(args.out_dir))
     if not port_is_free(args.host, args.port):
         raise UserError(f"port {args.port} on {args.host} is busy (another server?): "
                         "pass a free one with --port")

@@ -14,6 +14,11 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 DEPTH_SCALE = 1000.0  # the ArtGS/GEAR layout's depth pngs store millimetres
+DEPTH_PNG_MODES = ("I;16", "I;16B", "I;16L", "I")  # how Pillow opens a 16-bit grayscale png
+# A mask pixel is grey (neither object nor background) between these fractions of the range;
+# past GREY_MASK_FRACTION of such pixels the "mask" is more likely a photo or a depth map.
+GREY_BAND = (0.1, 0.9)
+GREY_MASK_FRACTION = 0.05
 
 
 class Reader:
@@ -22,7 +27,8 @@ class Reader:
     def __init__(self, root: Path) -> None:
         self.root = root
         self.problems: list[str] = []
-        self.warnings: list[str] = []  # inputs found but not used, said once by check and train
+        # inputs found but not used, or used with a doubt: said once by check and train
+        self.warnings: list[str] = []
         # group (e.g. a transforms file) -> ((width, height), image that set it): the first image
         self.sizes: dict[str, tuple[tuple[int, int], str]] = {}
 
@@ -119,8 +125,21 @@ class Reader:
         arr = np.asarray(img.convert("L") if img.mode == "P" else img)
         if not self.same_shape(path, arr.shape, hw):
             return None
-        half = 127 if img.mode in ("L", "P") else 32767
-        mask = (arr > (0 if arr.max(initial=0) <= 1 else half)).astype(np.float32)
+        full = 255 if img.mode in ("1", "L", "P") else 65535
+        low, high = int(arr.min(initial=0)), int(arr.max(initial=0))
+        if low < 0 or high > full:
+            self.problem(path, f"object mask values span {low}..{high}, outside 0..{full}")
+            return None
+        if 1 < high <= full // 2:
+            self.problem(path, f"object mask values span {low}..{high}: a mask is 0/1 or black/"
+                               f"white (0/{full}, white = object), this looks like a label image")
+            return None
+        if high > 1:
+            grey = np.mean((arr > GREY_BAND[0] * full) & (arr < GREY_BAND[1] * full))
+            if grey > GREY_MASK_FRACTION:
+                self.warnings.append(f"{self._rel(path)}: object mask is not black and white "
+                                     f"({100 * grey:.0f}% grey pixels); thresholded at half")
+        mask = (arr > (0 if high <= 1 else full // 2)).astype(np.float32)
         if not mask.any():
             self.problem(path, "object mask is empty (the object is not visible)")
             return None
@@ -149,12 +168,12 @@ class Reader:
             img = self._open(path)
             if img is None:
                 return None
-            arr = np.asarray(img)
-            if arr.ndim != 2 or arr.dtype.kind not in "ui":
-                self.problem(
-                    path, f"depth must be a single-channel 16-bit png, got mode {img.mode}"
-                )
+            if img.mode not in DEPTH_PNG_MODES:
+                bits = "8-bit grayscale" if img.mode in ("L", "P", "1") else f"mode {img.mode}"
+                self.problem(path, f"depth must be a single-channel 16-bit png (millimetres), "
+                                   f"got {bits}")
                 return None
+            arr = np.asarray(img)
         if not self.same_shape(path, arr.shape, hw):
             return None
         if not np.all(np.isfinite(arr)) or arr.min() < 0:
