@@ -12,9 +12,9 @@ struct CountParams {
 @group(0) @binding(3) var<uniform> params: CountParams;
 @group(0) @binding(4) var<storage, read> projected: array<vec4<f32>>;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = thread_index(gid, nwg, 256u);
+    let i = thread_index(gid, nwg, WG);
     if i < params.n {
         let g = order[i];
         let r = rects[g];
