@@ -1,6 +1,7 @@
 // Stage 2 input: the number of tiles each Gaussian reaches (tile_test.wgsl) within its tile
 // rectangle, in depth order, plus a trailing zero so that the exclusive scan's last element is
-// the total number of intersections. Prefixed with tile_test.wgsl; specialised with TILE.
+// the total number of intersections. Prefixed with tile_test.wgsl; specialised with TILE, WG
+// (threads per workgroup).
 
 struct CountParams {
     n: u32,
