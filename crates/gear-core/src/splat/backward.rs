@@ -7,7 +7,8 @@ use crate::error::{GearError, Result};
 use crate::gpu::GpuContext;
 
 use super::forward::ForwardState;
-use super::kernels::{self, dispatch, groups, storage, WG};
+use super::frame::Frame;
+use super::kernels::{self, dispatch, groups, storage, KernelParams, WG};
 use super::types::{GaussianGradients, OutputGradients};
 
 /// Screen-space accumulators per Gaussian: conic a, b, c, u, v, opacity, z, unused.
@@ -111,7 +112,7 @@ pub(crate) fn backward_impl(
             (5, storage(&image_grads)),
             (6, storage(&geometry)),
             (7, storage(&gradients)),
-            (15, frame.clone()),
+            (Frame::BINDING, frame.clone()),
         ],
         state.frame.tiles(),
     );
@@ -127,7 +128,7 @@ pub(crate) fn backward_impl(
             (4, storage(&geometry)),
             (5, storage(&gradients)),
             (7, storage(&state.inputs[4])),
-            (15, frame),
+            (Frame::BINDING, frame),
         ],
         groups(n as u32, WG),
     );

@@ -6,29 +6,17 @@
 //! (stable) gives every tile's list in depth order while sorting the many pairs on just the
 //! tile bits. The number of pairs is read back between the two submissions to size buffers.
 
-use bytemuck::{Pod, Zeroable};
-
 use crate::error::Result;
 use crate::gpu::{GpuContext, PooledBuffer};
 
 use super::frame::Frame;
-use super::kernels::{self, dispatch, groups, storage, uniform, PixelVariant, WG};
+use super::kernels::{
+    self, dispatch, groups, storage, uniform, CountParams, EmitParams, KernelParams, PixelVariant,
+    RangeParams, WG,
+};
 use super::scan::encode_exclusive_scan;
 use super::sort::{bits_for, encode_index_sort, encode_radix_sort, Pairs};
 use super::types::{Camera, Gaussians, RenderOptions, RenderOutput};
-
-#[repr(C)]
-#[derive(Clone, Copy, Pod, Zeroable)]
-struct CountParams {
-    n: u32,
-}
-
-#[repr(C)]
-#[derive(Clone, Copy, Pod, Zeroable)]
-struct EmitParams {
-    n: u32,
-    tiles_x: u32,
-}
 
 /// What the backward pass needs from a forward pass, kept on the GPU.
 pub struct ForwardState {
@@ -127,7 +115,7 @@ pub(crate) fn forward_impl(
             (5, storage(&rects)),
             (6, storage(&depth_keys)),
             (7, storage(&inputs[4])),
-            (15, frame_buffer.as_entire_binding()),
+            (Frame::BINDING, frame_buffer.as_entire_binding()),
         ],
         groups(n, WG),
     );
@@ -142,7 +130,7 @@ pub(crate) fn forward_impl(
             (0, storage(&by_depth.values)),
             (1, storage(&rects)),
             (2, storage(&offsets)),
-            (3, count_params.as_entire_binding()),
+            (CountParams::BINDING, count_params.as_entire_binding()),
             (4, storage(&projected)),
         ],
         groups(n + 1, WG),
@@ -185,7 +173,7 @@ pub(crate) fn forward_impl(
             (2, storage(&offsets)),
             (3, storage(&tile_pairs.keys)),
             (4, storage(&tile_pairs.values)),
-            (5, emit_params.as_entire_binding()),
+            (EmitParams::BINDING, emit_params.as_entire_binding()),
             (6, storage(&projected)),
         ],
         groups(n, WG),
@@ -200,7 +188,7 @@ pub(crate) fn forward_impl(
     )?;
     encoder.clear_buffer(&ranges.buffer, 0, Some(ranges.size));
     if pairs > 0 {
-        let range_params = uniform(ctx, &CountParams { n: pairs });
+        let range_params = uniform(ctx, &RangeParams { pairs });
         dispatch(
             ctx,
             &mut encoder,
@@ -208,7 +196,7 @@ pub(crate) fn forward_impl(
             &[
                 (0, storage(&by_tile.keys)),
                 (1, storage(&ranges)),
-                (2, range_params.as_entire_binding()),
+                (RangeParams::BINDING, range_params.as_entire_binding()),
             ],
             groups(pairs, WG),
         );
@@ -225,7 +213,7 @@ pub(crate) fn forward_impl(
             (3, storage(&inputs[4])),
             (4, storage(&image)),
             (5, storage(&pixel_state)),
-            (15, frame_buffer.as_entire_binding()),
+            (Frame::BINDING, frame_buffer.as_entire_binding()),
         ],
         groups(frame.tiles(), kernels::blend_tile_group(subgroups)),
     );

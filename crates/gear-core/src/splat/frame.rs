@@ -1,10 +1,10 @@
 //! The per-render uniform shared by the project, blend and backward kernels
-//! (`Frame` in shaders/splat/common.wgsl; the two layouts must match).
+//! (`Frame` in shaders/splat/common.wgsl; the kernels' tests check that the layouts match).
 
 use bytemuck::{Pod, Zeroable};
 
 use super::constants::{CLAMP_FACTOR, MAX_CHANNELS};
-use super::kernels::GPU_TILE;
+use super::kernels::{KernelParams, GPU_TILE};
 use super::types::Camera;
 
 #[repr(C)]
@@ -23,6 +23,11 @@ pub struct Frame {
     pub tiles_y: u32,
     pad: [u32; 3],
     background: [[f32; 4]; MAX_CHANNELS / 4],
+}
+
+impl KernelParams for Frame {
+    const WGSL_NAME: &'static str = "Frame";
+    const BINDING: u32 = 15;
 }
 
 impl Frame {

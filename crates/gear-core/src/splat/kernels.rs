@@ -6,7 +6,7 @@
 
 use std::sync::Arc;
 
-use bytemuck::Pod;
+use bytemuck::{Pod, Zeroable};
 use wgpu::util::DeviceExt;
 
 use crate::gpu::{workgroup_grid, GpuContext, PooledBuffer, ShaderSpec};
@@ -129,15 +129,13 @@ impl PixelVariant {
 }
 
 pub fn project(variant: PixelVariant) -> ShaderSpec {
-    variant.apply(ShaderSpec::new("splat_project", PROJECT, "main"))
+    let spec = variant.apply(ShaderSpec::new("splat_project", PROJECT, "main"));
+    with_workgroup(spec, WG)
 }
 
 pub fn project_backward(variant: PixelVariant) -> ShaderSpec {
-    variant.apply(ShaderSpec::new(
-        "splat_project_backward",
-        PROJECT_BACKWARD,
-        "main",
-    ))
+    let spec = ShaderSpec::new("splat_project_backward", PROJECT_BACKWARD, "main");
+    with_workgroup(variant.apply(spec), WG)
 }
 
 /// The forward blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or
@@ -173,23 +171,27 @@ pub fn blend_backward(
         .with("FEATURE_GRADS", features_grad)
 }
 
-fn scan_spec(name: &'static str, source: &'static str) -> ShaderSpec {
-    ShaderSpec::new(name, source, "main")
-        .with("WG", format!("{SCAN_WG}u"))
-        .with("ITEMS", format!("{SCAN_ITEMS}u"))
+/// `spec` run by workgroups of `size` threads (the shader's `WG`).
+fn with_workgroup(spec: ShaderSpec, size: u32) -> ShaderSpec {
+    spec.with("WG", format!("{size}u"))
 }
 
+/// Scans blocks of `SCAN_WG * SCAN_ITEMS` elements, one per workgroup.
 pub fn scan_block() -> ShaderSpec {
-    scan_spec("splat_scan_block", splat_source!("scan_block"))
+    let spec = ShaderSpec::new("splat_scan_block", splat_source!("scan_block"), "main");
+    with_workgroup(spec, SCAN_WG).with("ITEMS", format!("{SCAN_ITEMS}u"))
 }
 
+/// Adds the scanned block totals back, one thread per element in workgroups of [`WG`].
 pub fn scan_add() -> ShaderSpec {
-    scan_spec("splat_scan_add", splat_source!("scan_add"))
+    let spec = ShaderSpec::new("splat_scan_add", splat_source!("scan_add"), "main");
+    with_workgroup(spec, WG).with("BLOCK", format!("{}u", SCAN_WG * SCAN_ITEMS))
 }
 
 pub fn radix_count(bits: u32) -> ShaderSpec {
     const SOURCE: &str = splat_source!("radix_common", "radix_count");
-    ShaderSpec::new("splat_radix_count", SOURCE, "main").with("BITS", format!("{bits}u"))
+    let spec = ShaderSpec::new("splat_radix_count", SOURCE, "main");
+    with_workgroup(spec, SORT_WG).with("BITS", format!("{bits}u"))
 }
 
 /// The scatter step; `identity_values` makes the payload each element's input position
@@ -202,31 +204,108 @@ pub fn radix_scatter(bits: u32, identity_values: bool) -> ShaderSpec {
     } else {
         ("splat_radix_scatter", FROM_BUFFER)
     };
-    ShaderSpec::new(name, source, "main").with("BITS", format!("{bits}u"))
+    with_workgroup(ShaderSpec::new(name, source, "main"), SORT_WG).with("BITS", format!("{bits}u"))
 }
 
 pub fn tile_counts() -> ShaderSpec {
     const SOURCE: &str = splat_source!("tile_test", "tile_counts");
-    ShaderSpec::new("splat_tile_counts", SOURCE, "main").with("TILE", format!("{GPU_TILE}u"))
+    let spec = ShaderSpec::new("splat_tile_counts", SOURCE, "main");
+    with_workgroup(spec, WG).with("TILE", format!("{GPU_TILE}u"))
 }
 
 pub fn emit() -> ShaderSpec {
     const SOURCE: &str = splat_source!("tile_test", "emit");
-    ShaderSpec::new("splat_emit", SOURCE, "main").with("TILE", format!("{GPU_TILE}u"))
+    let spec = ShaderSpec::new("splat_emit", SOURCE, "main");
+    with_workgroup(spec, WG).with("TILE", format!("{GPU_TILE}u"))
 }
 
 pub fn tile_ranges() -> ShaderSpec {
-    ShaderSpec::new("splat_tile_ranges", splat_source!("tile_ranges"), "main")
+    let spec = ShaderSpec::new("splat_tile_ranges", splat_source!("tile_ranges"), "main");
+    with_workgroup(spec, WG)
+}
+
+/// A kernel's parameter uniform: its Rust layout, and the WGSL struct and group-0 binding the
+/// shaders declare it as (the tests compare all three with each shader's reflection).
+pub trait KernelParams: Pod {
+    /// Name of the WGSL struct with the same layout.
+    const WGSL_NAME: &'static str;
+    /// Its `@binding` in group 0, in every shader that reads it.
+    const BINDING: u32;
+}
+
+/// Gaussians counted by tile_counts (`CountParams` in tile_counts.wgsl).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+pub struct CountParams {
+    pub n: u32,
+}
+
+impl KernelParams for CountParams {
+    const WGSL_NAME: &'static str = "CountParams";
+    const BINDING: u32 = 3;
+}
+
+/// Gaussians emitting pairs, and the tile grid's width (`EmitParams` in emit.wgsl).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+pub struct EmitParams {
+    pub n: u32,
+    pub tiles_x: u32,
+}
+
+impl KernelParams for EmitParams {
+    const WGSL_NAME: &'static str = "EmitParams";
+    const BINDING: u32 = 5;
+}
+
+/// Sorted pairs whose tile runs tile_ranges finds (`RangeParams` in tile_ranges.wgsl).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+pub struct RangeParams {
+    pub pairs: u32,
+}
+
+impl KernelParams for RangeParams {
+    const WGSL_NAME: &'static str = "RangeParams";
+    const BINDING: u32 = 2;
+}
+
+/// One radix pass, read by both its steps (`SortParams` in radix_common.wgsl).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+pub struct SortParams {
+    pub n: u32,
+    pub shift: u32,
+    pub chunk: u32,
+    pub threads: u32,
+}
+
+impl KernelParams for SortParams {
+    const WGSL_NAME: &'static str = "SortParams";
+    const BINDING: u32 = 5;
+}
+
+/// One scan level, read by both its steps (`ScanParams` in scan_block.wgsl, scan_add.wgsl).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+pub struct ScanParams {
+    pub n: u32,
+    pub blocks: u32,
+}
+
+impl KernelParams for ScanParams {
+    const WGSL_NAME: &'static str = "ScanParams";
+    const BINDING: u32 = 2;
 }
 
 /// A small uniform buffer holding `value`, zero-padded to a multiple of 16 bytes (the
 /// granularity of uniform layouts).
-pub fn uniform<T: Pod>(ctx: &GpuContext, value: &T) -> wgpu::Buffer {
+pub fn uniform<T: KernelParams>(ctx: &GpuContext, value: &T) -> wgpu::Buffer {
     let mut contents = bytemuck::bytes_of(value).to_vec();
     contents.resize(contents.len().next_multiple_of(16), 0);
     ctx.device
         .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("splat-params"),
+            label: Some(T::WGSL_NAME),
             contents: &contents,
             usage: wgpu::BufferUsages::UNIFORM,
         })
@@ -277,4 +356,110 @@ pub fn storage(buf: &PooledBuffer) -> wgpu::BindingResource<'_> {
         offset: 0,
         size: wgpu::BufferSize::new(buf.size.max(32)),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    //! The host's declarations against the shaders' own: every kernel variant is compiled by
+    //! naga (wgpu's shader compiler) and its parameter uniforms and workgroup size compared
+    //! with the Rust structs, bindings and constants the dispatch code uses.
+
+    use std::collections::HashSet;
+
+    use super::super::constants::MAX_CHANNELS;
+    use super::super::frame::Frame;
+    use super::*;
+
+    /// Every kernel variant the host can dispatch, with the threads per workgroup the host
+    /// divides the work by (1D kernels) or lays tiles out for (blend kernels).
+    fn every_kernel() -> Vec<(ShaderSpec, u32)> {
+        let mut kernels = vec![
+            (scan_block(), SCAN_WG),
+            (scan_add(), WG),
+            (tile_counts(), WG),
+            (emit(), WG),
+            (tile_ranges(), WG),
+        ];
+        for bits in [1, 8] {
+            kernels.push((radix_count(bits), SORT_WG));
+            for identity in [false, true] {
+                kernels.push((radix_scatter(bits, identity), SORT_WG));
+            }
+        }
+        for channels in [1, 3, MAX_CHANNELS] {
+            for depth in [false, true] {
+                let variant = PixelVariant { channels, depth };
+                kernels.push((project(variant), WG));
+                kernels.push((project_backward(variant), WG));
+                for subgroups in [false, true] {
+                    let rows = GPU_TILE * blend_tile_group(subgroups);
+                    kernels.push((blend(variant, subgroups), rows));
+                    for float_atomics in [false, true] {
+                        for features_grad in [false, true] {
+                            let spec =
+                                blend_backward(variant, float_atomics, subgroups, features_grad);
+                            kernels.push((spec, GPU_TILE));
+                        }
+                    }
+                }
+            }
+        }
+        kernels
+    }
+
+    /// `(WGSL struct name, binding, size in bytes)` of a parameter uniform as the host has it.
+    fn host_params<T: KernelParams>() -> (&'static str, u32, u32) {
+        (T::WGSL_NAME, T::BINDING, std::mem::size_of::<T>() as u32)
+    }
+
+    #[test]
+    fn params_and_workgroup_sizes_match_the_shaders() {
+        let declared = [
+            host_params::<Frame>(),
+            host_params::<CountParams>(),
+            host_params::<EmitParams>(),
+            host_params::<RangeParams>(),
+            host_params::<SortParams>(),
+            host_params::<ScanParams>(),
+        ];
+        let mut seen = HashSet::new();
+        for (spec, threads) in every_kernel() {
+            let label = format!("{} {:?}", spec.name, spec.constants);
+            let module = naga::front::wgsl::parse_str(&spec.specialised_source())
+                .unwrap_or_else(|e| panic!("{label}: {e}"));
+            let mut layouter = naga::proc::Layouter::default();
+            layouter.update(module.to_ctx()).unwrap();
+
+            let mut bindings = HashSet::new();
+            for (_, global) in module.global_variables.iter() {
+                let Some(binding) = &global.binding else {
+                    continue;
+                };
+                assert_eq!(binding.group, 0, "{label}");
+                assert!(bindings.insert(binding.binding), "{label}: binding reused");
+                if global.space != naga::AddressSpace::Uniform {
+                    continue;
+                }
+                let name = module.types[global.ty].name.clone().unwrap_or_default();
+                let (_, host_binding, host_size) = declared
+                    .iter()
+                    .find(|(wgsl_name, _, _)| *wgsl_name == name)
+                    .unwrap_or_else(|| panic!("{label}: uniform {name} has no host struct"));
+                assert_eq!(binding.binding, *host_binding, "{label}: binding of {name}");
+                let size = layouter[global.ty].size;
+                assert_eq!(size, *host_size, "{label}: size of {name}");
+                seen.insert(name);
+            }
+
+            let entry = module
+                .entry_points
+                .iter()
+                .find(|e| e.name == spec.entry)
+                .unwrap_or_else(|| panic!("{label}: no entry point {}", spec.entry));
+            assert_eq!(entry.workgroup_size, [threads, 1, 1], "{label}");
+        }
+        for (name, _, _) in declared {
+            assert!(seen.contains(name), "no kernel reads {name}");
+        }
+    }
 }

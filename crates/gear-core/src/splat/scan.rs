@@ -3,19 +3,12 @@
 //! Level one scans blocks of `SCAN_WG * SCAN_ITEMS` elements and collects block totals; the
 //! totals are scanned the same way (recursively) and added back.
 
-use bytemuck::{Pod, Zeroable};
-
 use crate::error::Result;
 use crate::gpu::{GpuContext, PooledBuffer};
 
-use super::kernels::{self, dispatch, groups, storage, uniform, SCAN_ITEMS, SCAN_WG, WG};
-
-#[repr(C)]
-#[derive(Clone, Copy, Pod, Zeroable)]
-struct ScanParams {
-    n: u32,
-    blocks: u32,
-}
+use super::kernels::{
+    self, dispatch, groups, storage, uniform, KernelParams, ScanParams, SCAN_ITEMS, SCAN_WG, WG,
+};
 
 /// Records an exclusive scan of the first `n` elements of `data`. Temporaries are pushed to
 /// `keep` and must outlive the submission of `encoder`.
@@ -39,7 +32,7 @@ pub fn encode_exclusive_scan(
         &[
             (0, storage(data)),
             (1, storage(&block_sums)),
-            (2, params.as_entire_binding()),
+            (ScanParams::BINDING, params.as_entire_binding()),
         ],
         blocks,
     );
@@ -52,7 +45,7 @@ pub fn encode_exclusive_scan(
             &[
                 (0, storage(data)),
                 (1, storage(&block_sums)),
-                (2, params.as_entire_binding()),
+                (ScanParams::BINDING, params.as_entire_binding()),
             ],
             groups(n, WG),
         );

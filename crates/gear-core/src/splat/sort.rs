@@ -6,12 +6,10 @@
 //! its output slot, and the thread moves its pairs in order (radix_scatter). Serial work per
 //! thread suits a software adapter (no barriers, no shared memory) and is stable by design.
 
-use bytemuck::{Pod, Zeroable};
-
 use crate::error::Result;
 use crate::gpu::{GpuContext, PooledBuffer};
 
-use super::kernels::{self, dispatch, groups, storage, uniform, SORT_WG};
+use super::kernels::{self, dispatch, groups, storage, uniform, KernelParams, SortParams, SORT_WG};
 use super::scan::encode_exclusive_scan;
 
 /// Widest digit of one pass.
@@ -20,15 +18,6 @@ const MAX_DIGIT_BITS: u32 = 8;
 const MIN_CHUNK: u32 = 256;
 /// Most threads per pass: bounds the counts array (threads x 2^digit bits) and its scan.
 const MAX_THREADS: u32 = 2048;
-
-#[repr(C)]
-#[derive(Clone, Copy, Pod, Zeroable)]
-struct SortParams {
-    n: u32,
-    shift: u32,
-    chunk: u32,
-    threads: u32,
-}
 
 /// Pairs to sort: `keys` and `values` hold `n` elements each.
 pub struct Pairs {
@@ -112,7 +101,7 @@ fn encode_passes(
             &[
                 (0, storage(&keys)),
                 (1, storage(&hist)),
-                (2, params.as_entire_binding()),
+                (SortParams::BINDING, params.as_entire_binding()),
             ],
             groups(threads, SORT_WG),
         );
@@ -123,7 +112,7 @@ fn encode_passes(
             (2, storage(&hist)),
             (3, storage(&spare_keys)),
             (4, storage(&spare_values)),
-            (5, params.as_entire_binding()),
+            (SortParams::BINDING, params.as_entire_binding()),
         ];
         if !identity {
             bindings.push((1, storage(&values)));

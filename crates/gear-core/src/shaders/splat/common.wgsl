@@ -1,7 +1,8 @@
 // Shared by the per-frame kernels (project, blend and their backward passes): the frame
 // uniform and small helpers. Contract constants (NEAR, FAR, LOW_PASS, MIN_ALPHA,
 // MAX_ALPHA, MIN_TRANSMITTANCE, QUAT_EPS), the GPU tile size TILE, and CHANNELS, WITH_DEPTH
-// are prepended by the host at pipeline compile time.
+// are prepended by the host at pipeline compile time. `Frame` has the layout and binding of
+// the host's `Frame` (splat/frame.rs); the kernels' tests compare the two.
 
 struct Frame {
     // Rows of world_to_cam: rotation in xyz, translation in w.

@@ -18,9 +18,9 @@ struct EmitParams {
 @group(0) @binding(5) var<uniform> params: EmitParams;
 @group(0) @binding(6) var<storage, read> projected: array<vec4<f32>>;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = thread_index(gid, nwg, 256u);
+    let i = thread_index(gid, nwg, WG);
     if i >= params.n {
         return;
     }

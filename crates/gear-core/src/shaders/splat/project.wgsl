@@ -10,9 +10,9 @@
 // f32 bits of camera z (ordered like the floats since z > 0); culled sort last.
 @group(0) @binding(6) var<storage, read_write> depth_keys: array<u32>;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = thread_index(gid, nwg, 256u);
+    let i = thread_index(gid, nwg, WG);
     if i >= frame.n {
         return;
     }

@@ -42,9 +42,9 @@ fn rotation_backward(q: vec4<f32>, g: mat3x3<f32>) -> vec4<f32> {
     return 2.0 * vec4<f32>(dw, dx, dy, dz);
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = thread_index(gid, nwg, 256u);
+    let i = thread_index(gid, nwg, WG);
     if i >= frame.n {
         return;
     }

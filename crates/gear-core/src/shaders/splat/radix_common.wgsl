@@ -1,6 +1,6 @@
-// Shared by radix_count.wgsl and radix_scatter.wgsl (each binds `params`): the pass
+// Shared by radix_count.wgsl and radix_scatter.wgsl (both bind `params` here): the pass
 // parameters, the chunk of keys each thread owns, and the digit a pass sorts by.
-// Specialised with: BITS (digit width).
+// Specialised with: BITS (digit width), WG (threads per workgroup).
 
 struct SortParams {
     n: u32,
@@ -8,6 +8,8 @@ struct SortParams {
     chunk: u32,
     threads: u32,
 }
+
+@group(0) @binding(5) var<uniform> params: SortParams;
 
 const BINS: u32 = 1u << BITS;
 

@@ -5,11 +5,10 @@
 
 @group(0) @binding(0) var<storage, read> keys: array<u32>;
 @group(0) @binding(1) var<storage, read_write> hist: array<u32>;
-@group(0) @binding(2) var<uniform> params: SortParams;
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(WG)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let t = thread_index(gid, nwg, 64u);
+    let t = thread_index(gid, nwg, WG);
     if t >= params.threads {
         return;
     }

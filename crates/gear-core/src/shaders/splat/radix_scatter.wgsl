@@ -8,11 +8,10 @@
 @group(0) @binding(2) var<storage, read_write> hist: array<u32>;
 @group(0) @binding(3) var<storage, read_write> keys_out: array<u32>;
 @group(0) @binding(4) var<storage, read_write> values_out: array<u32>;
-@group(0) @binding(5) var<uniform> params: SortParams;
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(WG)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let t = thread_index(gid, nwg, 64u);
+    let t = thread_index(gid, nwg, WG);
     if t >= params.threads {
         return;
     }

@@ -1,5 +1,6 @@
 // Exclusive prefix sum, second half of a level: adds each block's scanned offset to its
-// elements. Specialised with: WG, ITEMS (the block size of scan_block.wgsl).
+// elements. Specialised with: WG (threads per workgroup), BLOCK (the elements per block of
+// scan_block.wgsl).
 
 struct ScanParams {
     n: u32,
@@ -10,10 +11,10 @@ struct ScanParams {
 @group(0) @binding(1) var<storage, read> block_sums: array<u32>;
 @group(0) @binding(2) var<uniform> params: ScanParams;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = thread_index(gid, nwg, 256u);
+    let i = thread_index(gid, nwg, WG);
     if i < params.n {
-        data[i] += block_sums[i / (WG * ITEMS)];
+        data[i] += block_sums[i / BLOCK];
     }
 }

@@ -1,6 +1,7 @@
 // Stage 2 input: the number of tiles each Gaussian reaches (tile_test.wgsl) within its tile
 // rectangle, in depth order, plus a trailing zero so that the exclusive scan's last element is
-// the total number of intersections. Prefixed with tile_test.wgsl; specialised with TILE.
+// the total number of intersections. Prefixed with tile_test.wgsl; specialised with TILE, WG
+// (threads per workgroup).
 
 struct CountParams {
     n: u32,
@@ -12,9 +13,9 @@ struct CountParams {
 @group(0) @binding(3) var<uniform> params: CountParams;
 @group(0) @binding(4) var<storage, read> projected: array<vec4<f32>>;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = thread_index(gid, nwg, 256u);
+    let i = thread_index(gid, nwg, WG);
     if i < params.n {
         let g = order[i];
         let r = rects[g];

@@ -9,9 +9,9 @@ struct RangeParams {
 @group(0) @binding(1) var<storage, read_write> ranges: array<u32>;
 @group(0) @binding(2) var<uniform> params: RangeParams;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = thread_index(gid, nwg, 256u);
+    let i = thread_index(gid, nwg, WG);
     if i >= params.pairs {
         return;
     }
