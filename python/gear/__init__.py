@@ -25,6 +25,13 @@ def _private_runtime_dir() -> None:
 
 _private_runtime_dir()
 
+# torch's OpenMP workers busy-wait after each parallel op by default, on the cores the CPU
+# rasterizer's threads then need: at 90k Gaussians / 128x128 that cost a call through
+# gear.splat.rasterize and autograd ~15 ms of a loss's small ops plus ~15% of the executor's
+# own time. Passive workers sleep instead. It only takes effect when gear is imported before
+# torch (as `python -m gear` does); a value the user set is kept.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 from gear._core import __version__  # noqa: E402 (after the runtime dir: it may touch the GPU)
 
 __all__ = ["__version__"]

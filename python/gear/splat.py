@@ -119,7 +119,10 @@ def _check_inputs(arrays: tuple[Tensor, ...], camera: Camera, background: Tensor
 
 
 def _numpy(t: Tensor) -> np.ndarray:
-    return t.detach().contiguous().numpy()
+    """A zero-copy view of a contiguous float32 CPU tensor; others (e.g. the expanded gradient
+    of a sum) are copied by numpy on this thread rather than by a torch kernel on its OpenMP
+    workers, which would compete with the executor's threads for the cores."""
+    return np.ascontiguousarray(t.detach().numpy())
 
 
 class _Rasterize(torch.autograd.Function):

@@ -198,9 +198,9 @@ fn gradients<'py, T: Element + Copy>(
     let n = g.opacity_logits.len();
     let flat = |rows: Vec<T>, width: usize| PyArray1::from_vec(py, rows).reshape([n, width]);
     Ok((
-        flat(g.means.concat(), 3)?.into_any(),
-        flat(g.quats.concat(), 4)?.into_any(),
-        flat(g.log_scales.concat(), 3)?.into_any(),
+        flat(g.means.into_flattened(), 3)?.into_any(),
+        flat(g.quats.into_flattened(), 4)?.into_any(),
+        flat(g.log_scales.into_flattened(), 3)?.into_any(),
         PyArray1::from_vec(py, g.opacity_logits).into_any(),
         features_grad
             .then(|| flat(g.features, channels))
