@@ -3,7 +3,7 @@
 //! project-backward (per Gaussian, no atomics) to means, quats, log_scales and opacity logits.
 //! One submission, one readback of the packed gradients.
 
-use crate::error::{GearError, Result};
+use crate::error::Result;
 use crate::gpu::GpuContext;
 
 use super::forward::ForwardState;
@@ -51,18 +51,6 @@ pub(crate) fn backward_impl(
     let pixels = state.frame.pixels();
     let channels = state.channels();
     grads.validate(pixels, channels)?;
-    let arrays = [
-        ("grad_features", grads.features),
-        ("grad_alpha", grads.alpha),
-        ("grad_depth", grads.depth.unwrap_or(&[])),
-    ];
-    for (name, values) in arrays {
-        if !values.iter().all(|v| v.is_finite()) {
-            return Err(GearError::InvalidInput(format!(
-                "{name}: values must be finite"
-            )));
-        }
-    }
     let ctx = GpuContext::global()?;
     let n = state.len();
 

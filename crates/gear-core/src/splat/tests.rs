@@ -205,8 +205,10 @@ fn forward_errors(scene: &OwnedGaussians, cam: &Camera, depth: bool) -> (ImageEr
 /// f32 and f64 disagree on a handful of discrete decisions (an alpha at exactly 1/255, two
 /// depths closer than f32 resolves): there at most 1 value in 5000 may exceed 1e-4, and none
 /// 5e-3.
-#[test]
-fn forward_matches_reference() {
+pub(crate) fn forward_matches_reference_with(
+    label: &str,
+    forward_errors: impl Fn(&OwnedGaussians, &Camera, bool) -> (ImageError, ImageError),
+) {
     // The 50k scene gets a larger image and smaller Gaussians (fewer overlaps per pixel).
     let cases = [
         (1usize, 1u64, (90, 70), -4.0),
@@ -221,7 +223,7 @@ fn forward_matches_reference() {
                 let scene = random_scene_sized(n, channels, seed + channels as u64, log_scale);
                 let (image, depth_err) = forward_errors(&scene, &cam, depth);
                 eprintln!(
-                    "forward n={n} C={channels} depth={depth}: image {image:?} depth {depth_err:?}"
+                    "{label} forward n={n} C={channels} depth={depth}: image {image:?} depth {depth_err:?}"
                 );
                 for (what, e) in [("image", image), ("depth", depth_err)] {
                     let ok = if n <= 1000 {
@@ -234,6 +236,11 @@ fn forward_matches_reference() {
             }
         }
     }
+}
+
+#[test]
+fn forward_matches_reference() {
+    forward_matches_reference_with("gpu", forward_errors);
 }
 
 /// GPU and reference gradients for the same random image gradients.

@@ -254,8 +254,9 @@ pub struct OutputGradients<'a, T> {
     pub depth: Option<&'a [T]>,
 }
 
-impl<T> OutputGradients<'_, T> {
-    /// Checks the lengths against an H x W x C render.
+impl<T: Copy + Into<f64>> OutputGradients<'_, T> {
+    /// Checks the lengths against an H x W x C render, and that every value is finite (a
+    /// non-finite image gradient would spread into every Gaussian it touches).
     pub fn validate(&self, pixels: usize, channels: usize) -> Result<()> {
         let checks = [
             ("grad_features", self.features.len(), pixels * channels),
@@ -266,6 +267,18 @@ impl<T> OutputGradients<'_, T> {
             if got != want {
                 return Err(GearError::InvalidInput(format!(
                     "{name}: expected {want} values, got {got}"
+                )));
+            }
+        }
+        let arrays = [
+            ("grad_features", self.features),
+            ("grad_alpha", self.alpha),
+            ("grad_depth", self.depth.unwrap_or(&[])),
+        ];
+        for (name, values) in arrays {
+            if !values.iter().all(|&v| v.into().is_finite()) {
+                return Err(GearError::InvalidInput(format!(
+                    "{name}: values must be finite"
                 )));
             }
         }

@@ -25,7 +25,7 @@ use self::bins::{bin, Bins};
 use self::blend::{blend, PixelState, Scene};
 use self::blend_backward::{blend_backward, Replay, GEOMETRY};
 use self::project::{project, project_backward, InputGradients, View};
-use crate::error::{GearError, Result};
+use crate::error::Result;
 use crate::splat::types::{
     Camera, GaussianGradients, Gaussians, OutputGradients, OwnedGaussians, RenderOptions,
     RenderOutput,
@@ -167,18 +167,6 @@ pub fn backward_in(
 ) -> Result<GaussianGradients<f32>> {
     let channels = state.gaussians.channels;
     grads.validate(state.camera.pixels(), channels)?;
-    let arrays = [
-        ("grad_features", grads.features),
-        ("grad_alpha", grads.alpha),
-        ("grad_depth", grads.depth.unwrap_or(&[])),
-    ];
-    for (name, values) in arrays {
-        if !values.iter().all(|v| v.is_finite()) {
-            return Err(GearError::InvalidInput(format!(
-                "{name}: values must be finite"
-            )));
-        }
-    }
     let replay = Replay {
         state: &state.pixels,
         grads,

@@ -7,9 +7,9 @@ use rayon::ThreadPool;
 use super::{backward_in, build_pool, forward_in, CpuState};
 use crate::splat::reference;
 use crate::splat::tests::{
-    all_finite, camera, geometry_gradients, gradient_errors, gradients_finite,
-    hard_cases_stay_finite_with, options, random_image_grads, random_scene, random_scene_sized,
-    relative_l2, ImageError,
+    all_finite, camera, forward_matches_reference_with, geometry_gradients, gradient_errors,
+    gradients_finite, hard_cases_stay_finite_with, options, random_image_grads, random_scene,
+    random_scene_sized, relative_l2, ImageError,
 };
 use crate::splat::types::{
     Camera, GaussianGradients, OutputGradients, OwnedGaussians, RenderOutput,
@@ -46,30 +46,7 @@ fn forward_errors(scene: &OwnedGaussians, cam: &Camera, depth: bool) -> (ImageEr
 /// The same scenes and bounds as the GPU's forward_matches_reference.
 #[test]
 fn forward_matches_reference() {
-    let cases = [
-        (1usize, 1u64, (90, 70), -4.0),
-        (16, 2, (90, 70), -4.0),
-        (1000, 3, (90, 70), -4.0),
-        (50_000, 4, (300, 200), -5.5),
-    ];
-    for (n, seed, (w, h), log_scale) in cases {
-        let cam = camera(w, h);
-        for channels in [3usize, 11] {
-            for depth in [false, true] {
-                let scene = random_scene_sized(n, channels, seed + channels as u64, log_scale);
-                let (image, depth_err) = forward_errors(&scene, &cam, depth);
-                eprintln!("cpu forward n={n} C={channels} depth={depth}: {image:?} {depth_err:?}");
-                for (what, e) in [("image", image), ("depth", depth_err)] {
-                    let ok = if n <= 1000 {
-                        e.max <= 1e-4
-                    } else {
-                        e.within_flips()
-                    };
-                    assert!(ok, "n={n} C={channels} depth={depth}: {what} error {e:?}");
-                }
-            }
-        }
-    }
+    forward_matches_reference_with("cpu", forward_errors);
 }
 
 fn image_grads(cam: &Camera, channels: usize, seed: u64) -> Vec<Vec<f32>> {
