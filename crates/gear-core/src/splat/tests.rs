@@ -609,11 +609,8 @@ fn hard_cases_stay_finite() {
     hard_cases_stay_finite_with(check_finite);
 }
 
-/// Needles (one axis ~30x the others) at random angles: the blend only sees the tiles their
-/// 1/255 ellipse reaches (tile_test.wgsl), which drops most of a diagonal needle's bounding
-/// box; no pixel may lose a contribution.
-#[test]
-fn needles_match_reference() {
+/// 300 needles (one axis ~30x the others) at random angles, fairly opaque.
+pub(crate) fn needle_scene() -> OwnedGaussians {
     let mut scene = random_scene_sized(300, 3, 31, -3.5);
     for s in &mut scene.log_scales {
         *s = [s[0] + 1.7, s[1] - 1.7, s[2] - 1.7];
@@ -621,6 +618,24 @@ fn needles_match_reference() {
     for l in &mut scene.opacity_logits {
         *l += 2.0;
     }
+    scene
+}
+
+/// 600 large, nearly opaque Gaussians: most pixels saturate after a few entries.
+pub(crate) fn saturated_scene() -> OwnedGaussians {
+    let mut scene = random_scene_sized(600, 3, 41, -2.0);
+    for l in &mut scene.opacity_logits {
+        *l += 5.0;
+    }
+    scene
+}
+
+/// Needles (one axis ~30x the others) at random angles: the blend only sees the tiles their
+/// 1/255 ellipse reaches (tile_test.wgsl), which drops most of a diagonal needle's bounding
+/// box; no pixel may lose a contribution.
+#[test]
+fn needles_match_reference() {
+    let scene = needle_scene();
     for depth in [false, true] {
         let (image, depth_err) = forward_errors(&scene, &camera(90, 70), depth);
         for (what, e) in [("image", image), ("depth", depth_err)] {
@@ -635,10 +650,7 @@ fn needles_match_reference() {
 /// both run; partial tiles at the right and bottom edges (90 x 70 is not a multiple of 8).
 #[test]
 fn saturated_scene_matches_reference() {
-    let mut scene = random_scene_sized(600, 3, 41, -2.0);
-    for l in &mut scene.opacity_logits {
-        *l += 5.0;
-    }
+    let scene = saturated_scene();
     let cam = camera(90, 70);
     let opts = options(scene.channels, true);
     let reference = reference::forward(&scene.view(), &cam, &opts).unwrap();

@@ -8,8 +8,8 @@ use super::{backward_in, build_pool, forward_in, CpuState};
 use crate::splat::reference;
 use crate::splat::tests::{
     all_finite, camera, forward_matches_reference_with, geometry_gradients, gradient_errors,
-    gradients_finite, hard_cases_stay_finite_with, options, random_image_grads, random_scene,
-    random_scene_sized, relative_l2, ImageError,
+    gradients_finite, hard_cases_stay_finite_with, needle_scene, options, random_image_grads,
+    random_scene, random_scene_sized, relative_l2, saturated_scene, ImageError,
 };
 use crate::splat::types::{
     Camera, GaussianGradients, OutputGradients, OwnedGaussians, RenderOutput,
@@ -266,13 +266,7 @@ fn hard_cases_stay_finite() {
 /// Needles at random angles: the row test must not drop a pixel the ellipse reaches.
 #[test]
 fn needles_match_reference() {
-    let mut scene = random_scene_sized(300, 3, 31, -3.5);
-    for s in &mut scene.log_scales {
-        *s = [s[0] + 1.7, s[1] - 1.7, s[2] - 1.7];
-    }
-    for l in &mut scene.opacity_logits {
-        *l += 2.0;
-    }
+    let scene = needle_scene();
     for depth in [false, true] {
         let (image, depth_err) = forward_errors(&scene, &camera(90, 70), depth);
         for (what, e) in [("image", image), ("depth", depth_err)] {
@@ -289,10 +283,7 @@ fn needles_match_reference() {
 /// Large opaque Gaussians: rows stop early, and the backward replays each row's own prefix.
 #[test]
 fn saturated_scene_matches_reference() {
-    let mut scene = random_scene_sized(600, 3, 41, -2.0);
-    for l in &mut scene.opacity_logits {
-        *l += 5.0;
-    }
+    let scene = saturated_scene();
     let cam = camera(90, 70);
     let (image, depth_err) = forward_errors(&scene, &cam, true);
     for (what, e) in [("image", image), ("depth", depth_err)] {
