@@ -113,6 +113,13 @@ fn with_contract(spec: ShaderSpec) -> ShaderSpec {
         .with("TILE", format!("{GPU_TILE}u"))
 }
 
+/// How much the row bounds of a Gaussian's 1/255 ellipse (project.wgsl) are widened so that
+/// f32 rounding never makes the blend skip a pixel its own alpha test would take: the level
+/// by this fraction plus this much, and the span on a row by [`ROW_SPAN_SLACK`] pixels.
+/// (The alpha test's own rounding, through exp and log, is ~1e-6 relative.)
+const ROW_LEVEL_MARGIN: f64 = 1e-3;
+const ROW_SPAN_SLACK: f64 = 1e-2;
+
 /// What a per-pixel kernel is compiled for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PixelVariant {
@@ -125,6 +132,8 @@ impl PixelVariant {
         with_contract(spec)
             .with("CHANNELS", format!("{}u", self.channels))
             .with("WITH_DEPTH", self.depth)
+            .with("ROW_LEVEL_MARGIN", f32_literal(ROW_LEVEL_MARGIN))
+            .with("ROW_SPAN_SLACK", f32_literal(ROW_SPAN_SLACK))
     }
 }
 

@@ -14,7 +14,10 @@
 // per-lane gather, and with one thread per pixel those gathers took most of the time; here a
 // Gaussian is loaded once per eight pixels. The per-pixel state lives in vectors, not arrays
 // indexed by pixel (which would be gathers again), and per-pixel decisions are selects.
-// No per-pixel bounding box is tested: it would only skip pixels the alpha test skips.
+// Before any exponential, each row asks the entry which of its two quads the entry's 1/255
+// ellipse reaches (row_span, blend_common.wgsl); a quad no row of the tile needs is skipped.
+// With subgroups that skip is taken by the whole tile at once, which is what saves time on
+// the software adapter (there a branch that differs between rows is masked, not skipped).
 
 // Bindings 0-3 (projected, tile_values, ranges, features): blend_common.wgsl.
 // [H*W*C features][H*W alpha][H*W depth, when WITH_DEPTH].
@@ -111,8 +114,15 @@ fn main(
             break;
         }
         let entry = load_entry(k, leader, &own);
-        live -= blend_quad(&left, row.xs, row.cy, entry, &own, k);
-        live -= blend_quad(&right, row.xs + 4.0, row.cy, entry, &own, k);
+        // A quad whose pixel centres the entry's ellipse misses, or whose pixels have all
+        // stopped, would blend nothing: skip it, exponentials included.
+        let span = row_span(entry, row.cy);
+        if tile_any(span_meets(span, row.xs) && !all(left.stopped)) {
+            live -= blend_quad(&left, row.xs, row.cy, entry, &own, k);
+        }
+        if tile_any(span_meets(span, row.xs + 4.0) && !all(right.stopped)) {
+            live -= blend_quad(&right, row.xs + 4.0, row.cy, entry, &own, k);
+        }
     }
     store_quad(&left, 0u, row.len, row.start);
     store_quad(&right, 4u, row.len, row.start);

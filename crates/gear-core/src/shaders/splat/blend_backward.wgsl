@@ -165,9 +165,24 @@ fn main(
     var own: array<f32, CHANNELS>;
     for (var k = last; k > start; k--) {
         let entry = load_entry(k - 1u, leader, &own);
+        // As in blend.wgsl: a quad the entry's ellipse misses, or whose pixels' consumed
+        // prefixes all end before it, replays nothing; an entry no quad of the tile needs
+        // adds nothing either.
+        let span = row_span(entry, row.cy);
+        let need_left = tile_any(span_meets(span, row.xs) && any(vec4<u32>(k) <= left.consumed));
+        let need_right = tile_any(
+            span_meets(span, row.xs + 4.0) && any(vec4<u32>(k) <= right.consumed),
+        );
+        if !need_left && !need_right {
+            continue;
+        }
         var sums = Sums();
-        replay_quad(&left, row.xs, row.cy, entry, &own, k, &sums);
-        replay_quad(&right, row.xs + 4.0, row.cy, entry, &own, k, &sums);
+        if need_left {
+            replay_quad(&left, row.xs, row.cy, entry, &own, k, &sums);
+        }
+        if need_right {
+            replay_quad(&right, row.xs + 4.0, row.cy, entry, &own, k, &sums);
+        }
         if FEATURE_GRADS {
             for (var c = 0u; c < CHANNELS; c++) {
                 sums.features[c] = tile_sum(sums.features[c]);

@@ -1,9 +1,9 @@
 // Shared by blend.wgsl and blend_backward.wgsl, which must agree on it: the inputs both read,
 // the tile row a thread works on, the fetch of a list entry for all rows of a tile (who loads
-// it is up to tile_share_*.wgsl, included before), and the contract's evaluation of an entry
-// at four pixels of a row.
+// it is up to tile_share_*.wgsl, included before), the test of which quads of a row an entry
+// can reach, and the contract's evaluation of an entry at four pixels of a row.
 
-// Per Gaussian: (u, v, z, opacity), (conic a, b, c, level) (see project.wgsl).
+// Per Gaussian: (u, v, z, opacity), (conic a, b, c, level), (row bounds) (see project.wgsl).
 @group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
 // Per tile, its Gaussians in depth order ([start, end) of each tile in `ranges`).
 @group(0) @binding(1) var<storage, read> tile_values: array<u32>;
@@ -39,6 +39,8 @@ struct Entry {
     // (u, v, z, opacity).
     head: vec4<f32>,
     conic: vec3<f32>,
+    // The ellipse's row bounds (reach, slope, span; project.wgsl).
+    bounds: vec3<f32>,
 }
 
 // List entry k, its features into `own`. Call in uniform control flow, with `leader` from
@@ -47,10 +49,12 @@ fn load_entry(k: u32, leader: bool, own: ptr<function, array<f32, CHANNELS>>) ->
     var g = 0u;
     var head = vec4<f32>(0.0);
     var conic = vec4<f32>(0.0);
+    var bounds = vec4<f32>(0.0);
     if leader {
         g = tile_values[k];
-        head = projected[2u * g];
-        conic = projected[2u * g + 1u];
+        head = projected[3u * g];
+        conic = projected[3u * g + 1u];
+        bounds = projected[3u * g + 2u];
         for (var c = 0u; c < CHANNELS; c++) {
             (*own)[c] = features[g * CHANNELS + c];
         }
@@ -58,7 +62,30 @@ fn load_entry(k: u32, leader: bool, own: ptr<function, array<f32, CHANNELS>>) ->
     for (var c = 0u; c < CHANNELS; c++) {
         (*own)[c] = from_leader_f32((*own)[c]);
     }
-    return Entry(g, from_leader_vec4(head), from_leader_vec4(conic).xyz);
+    return Entry(
+        g,
+        from_leader_vec4(head),
+        from_leader_vec4(conic).xyz,
+        from_leader_vec4(bounds).xyz,
+    );
+}
+
+// The x interval [lo, hi] that entry `e`'s 1/255 ellipse spans on the pixel row y = cy,
+// widened by ROW_SPAN_SLACK pixels; empty (lo > hi) where the ellipse misses the row. A few
+// multiplies and one square root, against an exponential per pixel: the blend kernels test
+// it before evaluating a quad, and skip the quads no row of the tile needs (those whose
+// pixel centres lie outside it on every row, or whose pixels have all stopped).
+fn row_span(e: Entry, cy: f32) -> vec2<f32> {
+    let dy = cy - e.head.y;
+    let room = e.bounds.x - dy * dy;
+    let half = sqrt(max(room, 0.0) * e.bounds.z) + ROW_SPAN_SLACK;
+    let centre = e.head.x + e.bounds.y * dy;
+    return select(vec2<f32>(1.0, -1.0), vec2<f32>(centre - half, centre + half), room >= 0.0);
+}
+
+// Whether `span` (row_span) holds one of the pixel centres xs (ascending) of a quad.
+fn span_meets(span: vec2<f32>, xs: vec4<f32>) -> bool {
+    return span.y >= xs.x && span.x <= xs.w;
 }
 
 // An entry at four pixels of a row.

@@ -1,12 +1,16 @@
 // How blend.wgsl and blend_backward.wgsl share work between the rows of a tile without
-// subgroup operations: not at all; every row loads each Gaussian, stops on its own, and
-// makes its own atomic adds.
+// subgroup operations: not at all; every row loads each Gaussian, stops on its own, skips the
+// quads it does not need on its own, and makes its own atomic adds.
 
 fn leads_tile() -> bool {
     return true;
 }
 
 fn tile_all(v: bool) -> bool {
+    return v;
+}
+
+fn tile_any(v: bool) -> bool {
     return v;
 }
 

@@ -14,6 +14,12 @@ fn tile_all(v: bool) -> bool {
     return subgroupAll(v);
 }
 
+// Whether v holds for some row of the subgroup: a condition the whole subgroup branches on
+// together (a branch that differs between rows would be masked, not skipped).
+fn tile_any(v: bool) -> bool {
+    return subgroupAny(v);
+}
+
 fn tile_sum(v: f32) -> f32 {
     return subgroupAdd(v);
 }

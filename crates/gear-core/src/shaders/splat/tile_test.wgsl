@@ -19,7 +19,7 @@ struct TileTest {
 }
 
 fn tile_test_of(g: u32) -> TileTest {
-    return TileTest(projected[2u * g].xy, projected[2u * g + 1u]);
+    return TileTest(projected[3u * g].xy, projected[3u * g + 1u]);
 }
 
 fn meets_tile(gaussian: TileTest, tx: u32, ty: u32) -> bool {
