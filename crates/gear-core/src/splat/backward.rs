@@ -1,7 +1,8 @@
 //! The backward pass on the GPU: blend-backward (per tile row, each pixel replayed back to
-//! front, row sums added atomically to per-Gaussian screen-space and feature gradients), then
-//! project-backward (per Gaussian, no atomics) to means, quats, log_scales and opacity logits.
-//! One submission, one readback of the packed gradients.
+//! front, row sums added atomically to per-Gaussian screen-space and feature gradients; per
+//! band of rows when the forward pass split the image), then project-backward (per Gaussian,
+//! no atomics) to means, quats, log_scales and opacity logits. One submission per band, one
+//! readback of the packed gradients.
 
 use crate::error::Result;
 use crate::gpu::GpuContext;
@@ -54,16 +55,6 @@ pub(crate) fn backward_impl(
     let ctx = GpuContext::global()?;
     let n = state.len();
 
-    let mut packed = Vec::with_capacity(pixels * (channels + 2));
-    packed.extend_from_slice(grads.features);
-    packed.extend_from_slice(grads.alpha);
-    if state.depth() {
-        match grads.depth {
-            Some(d) => packed.extend_from_slice(d),
-            None => packed.resize(packed.len() + pixels, 0.0),
-        }
-    }
-    let image_grads = ctx.upload(&packed)?;
     let geometry = ctx.storage::<f32>(n * GEOMETRY_STRIDE)?;
     // Without feature gradients the packed output ends before the features.
     let out_channels = if features_grad { channels } else { 0 };
@@ -74,6 +65,7 @@ pub(crate) fn backward_impl(
     }
     let float_atomics = ctx.info.features.float32_atomics && accumulation == Accumulation::Auto;
     let subgroups = ctx.info.features.subgroups && allow_subgroups;
+    let kernel = kernels::blend_backward(state.variant, float_atomics, subgroups, features_grad);
 
     let mut encoder = ctx.device.create_command_encoder(&Default::default());
     encoder.clear_buffer(&geometry.buffer, 0, Some(geometry.size));
@@ -86,24 +78,48 @@ pub(crate) fn backward_impl(
             Some(gradients.size - feature_offset),
         );
     }
+    // Bands add into the same accumulators one after the other, top to bottom. A band's image
+    // gradients go back to the buffer pool (where another thread may take them) only once the
+    // dispatch that reads them is submitted.
+    let width = state.frame.width as usize;
+    let mut in_flight = None;
+    for band in &state.bands {
+        if in_flight.is_some() {
+            ctx.queue.submit(Some(encoder.finish()));
+            encoder = ctx.device.create_command_encoder(&Default::default());
+        }
+        let first = band.frame.row0 as usize * width;
+        let rows = first..first + band.frame.pixels();
+        let mut packed = Vec::with_capacity(rows.len() * (channels + 2));
+        packed.extend_from_slice(&grads.features[rows.start * channels..rows.end * channels]);
+        packed.extend_from_slice(&grads.alpha[rows.clone()]);
+        if state.depth() {
+            match grads.depth {
+                Some(d) => packed.extend_from_slice(&d[rows]),
+                None => packed.resize(packed.len() + band.frame.pixels(), 0.0),
+            }
+        }
+        let image_grads = ctx.upload(&packed)?;
+        dispatch(
+            ctx,
+            &mut encoder,
+            &kernel,
+            &[
+                (0, storage(&state.projected)),
+                (1, storage(&band.tile_values)),
+                (2, storage(&band.ranges)),
+                (3, storage(&state.inputs[4])),
+                (4, storage(&band.pixel_state)),
+                (5, storage(&image_grads)),
+                (6, storage(&geometry)),
+                (7, storage(&gradients)),
+                (Frame::BINDING, band.frame_buffer.as_entire_binding()),
+            ],
+            band.frame.tiles(),
+        );
+        in_flight = Some(image_grads);
+    }
     let frame = state.frame_buffer.as_entire_binding();
-    dispatch(
-        ctx,
-        &mut encoder,
-        &kernels::blend_backward(state.variant, float_atomics, subgroups, features_grad),
-        &[
-            (0, storage(&state.projected)),
-            (1, storage(&state.tile_values)),
-            (2, storage(&state.ranges)),
-            (3, storage(&state.inputs[4])),
-            (4, storage(&state.pixel_state)),
-            (5, storage(&image_grads)),
-            (6, storage(&geometry)),
-            (7, storage(&gradients)),
-            (Frame::BINDING, frame.clone()),
-        ],
-        state.frame.tiles(),
-    );
     dispatch(
         ctx,
         &mut encoder,
@@ -122,7 +138,7 @@ pub(crate) fn backward_impl(
     );
     ctx.queue.submit(Some(encoder.finish()));
     let values = ctx.read::<f32>(&gradients, total)?;
-    drop((image_grads, geometry));
+    drop((in_flight, geometry));
     Ok(unpack(&values, n, out_channels))
 }
 

@@ -1,35 +1,53 @@
-//! The forward pass on the GPU: project, depth sort, tile counts and their scan, pair
-//! emission, tile sort, tile ranges, blend. Returns the images and the GPU state the
-//! backward pass replays.
+//! The forward pass on the GPU: project, depth sort, then per band of image rows tile counts
+//! and their scan, pair emission, tile sort, tile ranges, blend. Returns the images and the
+//! GPU state the backward pass replays.
 //!
 //! Sorting N Gaussians by depth first and then only the (tile, Gaussian) pairs by tile id
 //! (stable) gives every tile's list in depth order while sorting the many pairs on just the
 //! tile bits. The number of pairs is read back between the two submissions to size buffers.
+//!
+//! Large images: one storage binding holds at most the adapter's limit (128 MiB on many,
+//! lavapipe included), which a 4096 x 4096 image of 3 channels, or 3840 x 2160 with depth,
+//! exceeds. The frame is therefore rendered in bands of whole tile rows, each of whose
+//! per-pixel buffers and pair lists fit ([`band_rows`]); a band whose pairs do not fit is
+//! halved. A band's tile lists are exactly the whole frame's lists of its tiles and its
+//! pixel centres keep their place in the image, so the stitched images equal an unsplit
+//! render bit for bit. Projection and the depth sort run once for all bands.
 
-use crate::error::Result;
+use crate::error::{GearError, Result};
 use crate::gpu::{GpuContext, PooledBuffer};
 
 use super::frame::Frame;
 use super::kernels::{
     self, dispatch, groups, storage, uniform, CountParams, EmitParams, KernelParams, PixelVariant,
-    RangeParams, WG,
+    RangeParams, GPU_TILE, WG,
 };
 use super::scan::encode_exclusive_scan;
 use super::sort::{bits_for, encode_index_sort, encode_radix_sort, Pairs};
 use super::types::{Camera, Gaussians, RenderOptions, RenderOutput};
 
+/// One band of image rows as the forward pass left it for the backward pass.
+pub(super) struct Band {
+    /// The band's frame ([`Frame::band`]) and its uniform.
+    pub(super) frame: Frame,
+    pub(super) frame_buffer: wgpu::Buffer,
+    pub(super) tile_values: PooledBuffer,
+    pub(super) ranges: PooledBuffer,
+    pub(super) pixel_state: PooledBuffer,
+}
+
 /// What the backward pass needs from a forward pass, kept on the GPU.
 pub struct ForwardState {
+    /// The whole image's frame and its uniform (projection and its backward).
     pub(super) frame: Frame,
     pub(super) frame_buffer: wgpu::Buffer,
     pub(super) variant: PixelVariant,
     /// means, quats, log_scales, opacity_logits, features (as uploaded).
     pub(super) inputs: [PooledBuffer; 5],
     pub(super) projected: PooledBuffer,
-    pub(super) tile_values: PooledBuffer,
-    pub(super) ranges: PooledBuffer,
-    pub(super) pixel_state: PooledBuffer,
-    /// Number of (tile, Gaussian) pairs.
+    /// Top to bottom; one band unless the image exceeds a storage binding.
+    pub(super) bands: Vec<Band>,
+    /// Number of (tile, Gaussian) pairs, summed over the bands.
     pub pairs: u32,
 }
 
@@ -57,6 +75,11 @@ impl ForwardState {
     pub fn height(&self) -> u32 {
         self.frame.height
     }
+
+    /// Bands of rows the frame was rendered in.
+    pub fn bands(&self) -> usize {
+        self.bands.len()
+    }
 }
 
 /// Renders `gaussians` seen by `camera` on the GPU.
@@ -65,28 +88,55 @@ pub fn forward(
     camera: &Camera,
     options: &RenderOptions,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
-    forward_impl(gaussians, camera, options, true, false)
+    forward_impl(gaussians, camera, options, true, false, None)
 }
 
-/// [`forward`], optionally without subgroup operations even where the adapter has them, and
-/// filling the outputs with NaN first (tests: both paths run, unwritten pixels show).
+/// Values per pixel in the largest per-pixel buffer of a band: the image (and, in the
+/// backward pass, its gradient) with `channels` features, alpha and depth; the pixel state's
+/// two words are never more.
+fn words_per_pixel(variant: PixelVariant) -> u64 {
+    (variant.channels + 1 + usize::from(variant.depth)) as u64
+}
+
+/// Image rows per band (a multiple of the tile size, or the whole height) such that a band's
+/// per-pixel buffers of `words` 4-byte values fit in `limit` bytes; an error when not even
+/// one row of tiles fits.
+fn band_rows(width: u32, height: u32, words: u64, limit: u64) -> Result<u32> {
+    let row_bytes = u64::from(width) * words * 4;
+    let tile_rows = limit / (row_bytes * u64::from(GPU_TILE));
+    if tile_rows == 0 {
+        return Err(GearError::InvalidInput(format!(
+            "image width {width}: {GPU_TILE} rows of {words} values per pixel exceed this \
+             adapter's storage binding limit of {limit} bytes"
+        )));
+    }
+    let rows = tile_rows.saturating_mul(u64::from(GPU_TILE));
+    Ok(rows.min(u64::from(height)) as u32)
+}
+
+/// [`forward`], optionally without subgroup operations even where the adapter has them,
+/// filling the outputs with NaN first (tests: both paths run, unwritten pixels show), and with
+/// a smaller storage binding limit than the adapter's (tests: bands on small images).
 pub(crate) fn forward_impl(
     gaussians: &Gaussians,
     camera: &Camera,
     options: &RenderOptions,
     allow_subgroups: bool,
     poison: bool,
+    binding_limit: Option<u64>,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
     camera.validate()?;
     gaussians.validate()?;
     options.validate(gaussians.channels)?;
     let ctx = GpuContext::global()?;
+    let limit = binding_limit.unwrap_or(ctx.info.max_storage_binding_bytes);
     let n = gaussians.len() as u32;
     let frame = Frame::new(camera, gaussians.len(), &options.background);
     let variant = PixelVariant {
         channels: gaussians.channels,
         depth: options.depth,
     };
+    let rows = band_rows(frame.width, frame.height, words_per_pixel(variant), limit)?;
     let frame_buffer = uniform(ctx, &frame);
     let inputs = [
         ctx.upload(gaussians.means)?,
@@ -97,7 +147,7 @@ pub(crate) fn forward_impl(
     ];
     let mut keep = Vec::new();
 
-    // Submission 1: project, depth sort, tile counts in depth order, their scan.
+    // Submitted with the first band's tile counts: project, depth sort.
     let projected = ctx.storage::<[f32; 12]>(n as usize)?;
     let rects = ctx.storage::<[u32; 4]>(n as usize)?;
     let depth_keys = ctx.storage::<u32>(n as usize)?;
@@ -120,47 +170,156 @@ pub(crate) fn forward_impl(
         groups(n, WG),
     );
     let by_depth = encode_index_sort(ctx, &mut encoder, depth_keys, n, 32, &mut keep)?;
+    let shared = Shared {
+        order: &by_depth.values,
+        rects: &rects,
+        projected: &projected,
+        features: &inputs[4],
+        n,
+        variant,
+        subgroups: ctx.info.features.subgroups && allow_subgroups,
+        poison,
+    };
+
+    // Bands to render, as a stack popped top to bottom; a band whose pairs do not fit in a
+    // binding is replaced by its two halves.
+    let mut pending: Vec<(u32, u32)> = (0..frame.height)
+        .step_by(rows as usize)
+        .map(|row0| (row0, rows.min(frame.height - row0)))
+        .rev()
+        .collect();
+    let pixels = frame.pixels();
+    let mut output = RenderOutput {
+        features: Vec::with_capacity(pixels * variant.channels),
+        alpha: Vec::with_capacity(pixels),
+        depth: variant.depth.then(|| Vec::with_capacity(pixels)),
+    };
+    let mut bands = Vec::new();
+    let mut total_pairs = 0u32;
+    let mut first = Some(encoder);
+    while let Some((row0, band_height)) = pending.pop() {
+        let band = frame.band(row0, band_height);
+        let encoder = first
+            .take()
+            .unwrap_or_else(|| ctx.device.create_command_encoder(&Default::default()));
+        let (offsets, pairs) = count_pairs(ctx, encoder, &shared, &band, &mut keep)?;
+        if u64::from(pairs) * 4 > limit {
+            if band.tiles_y <= 1 {
+                return Err(GearError::InvalidInput(format!(
+                    "{pairs} tile-Gaussian pairs in one row of tiles exceed this adapter's \
+                     storage binding limit of {limit} bytes"
+                )));
+            }
+            let upper = band.tiles_y.div_ceil(2) * GPU_TILE;
+            pending.push((row0 + upper, band_height - upper));
+            pending.push((row0, upper));
+            continue;
+        }
+        let state = blend_band(ctx, &shared, band, &offsets, pairs, &mut keep, &mut output)?;
+        bands.push(state);
+        total_pairs = total_pairs.saturating_add(pairs);
+    }
+    drop(keep);
+    let state = ForwardState {
+        frame,
+        frame_buffer,
+        variant,
+        inputs,
+        projected,
+        bands,
+        pairs: total_pairs,
+    };
+    Ok((output, state))
+}
+
+/// What every band of one forward pass reads, and how the pass runs.
+struct Shared<'a> {
+    /// Gaussian indices in depth order.
+    order: &'a PooledBuffer,
+    /// Per Gaussian: its tile rectangle in the whole image's grid, and its projection.
+    rects: &'a PooledBuffer,
+    projected: &'a PooledBuffer,
+    features: &'a PooledBuffer,
+    n: u32,
+    variant: PixelVariant,
+    subgroups: bool,
+    poison: bool,
+}
+
+/// Submits `encoder` with the band's tile counts in depth order and their exclusive scan
+/// appended; returns the scanned offsets and the band's number of pairs (read back).
+fn count_pairs(
+    ctx: &'static GpuContext,
+    mut encoder: wgpu::CommandEncoder,
+    shared: &Shared,
+    band: &Frame,
+    keep: &mut Vec<PooledBuffer>,
+) -> Result<(PooledBuffer, u32)> {
+    let n = shared.n;
     let offsets = ctx.storage::<u32>(n as usize + 1)?;
-    let count_params = uniform(ctx, &CountParams { n });
+    let count_params = uniform(
+        ctx,
+        &CountParams {
+            n,
+            tile_y0: band.tile_row0(),
+            tile_y1: band.tile_row0() + band.tiles_y,
+        },
+    );
     dispatch(
         ctx,
         &mut encoder,
         &kernels::tile_counts(),
         &[
-            (0, storage(&by_depth.values)),
-            (1, storage(&rects)),
+            (0, storage(shared.order)),
+            (1, storage(shared.rects)),
             (2, storage(&offsets)),
             (CountParams::BINDING, count_params.as_entire_binding()),
-            (4, storage(&projected)),
+            (4, storage(shared.projected)),
         ],
         groups(n + 1, WG),
     );
-    encode_exclusive_scan(ctx, &mut encoder, &offsets, n + 1, &mut keep)?;
+    encode_exclusive_scan(ctx, &mut encoder, &offsets, n + 1, keep)?;
     let total = ctx.storage::<u32>(1)?;
     encoder.copy_buffer_to_buffer(&offsets.buffer, u64::from(n) * 4, &total.buffer, 0, 4);
     ctx.queue.submit(Some(encoder.finish()));
     let pairs = ctx.read::<u32>(&total, 1)?[0];
+    Ok((offsets, pairs))
+}
 
-    // Submission 2: emit pairs, sort them by tile, find tile ranges, blend.
+/// Emits the band's pairs at `offsets`, sorts them by tile, finds the tile ranges and blends
+/// the band; appends its images (read back) to `output` and returns its state.
+fn blend_band(
+    ctx: &'static GpuContext,
+    shared: &Shared,
+    band: Frame,
+    offsets: &PooledBuffer,
+    pairs: u32,
+    keep: &mut Vec<PooledBuffer>,
+    output: &mut RenderOutput<f32>,
+) -> Result<Band> {
+    let variant = shared.variant;
     let tile_pairs = Pairs {
         keys: ctx.storage::<u32>(pairs as usize)?,
         values: ctx.storage::<u32>(pairs as usize)?,
     };
-    let ranges = ctx.storage::<u32>(2 * frame.tiles() as usize)?;
-    let pixels = frame.pixels();
-    let image_len = pixels * (variant.channels + 1 + usize::from(variant.depth));
+    let ranges = ctx.storage::<u32>(2 * band.tiles() as usize)?;
+    let pixels = band.pixels();
+    let image_len = pixels * words_per_pixel(variant) as usize;
     let image = ctx.storage::<f32>(image_len)?;
     let pixel_state = ctx.storage::<u32>(2 * pixels)?;
-    if poison {
+    if shared.poison {
         ctx.fill(&image, f32::NAN);
         ctx.fill(&pixel_state, u32::MAX);
     }
+    let frame_buffer = uniform(ctx, &band);
     let mut encoder = ctx.device.create_command_encoder(&Default::default());
     let emit_params = uniform(
         ctx,
         &EmitParams {
-            n,
-            tiles_x: frame.tiles_x,
+            n: shared.n,
+            tiles_x: band.tiles_x,
+            tile_y0: band.tile_row0(),
+            tile_y1: band.tile_row0() + band.tiles_y,
         },
     );
     dispatch(
@@ -168,23 +327,23 @@ pub(crate) fn forward_impl(
         &mut encoder,
         &kernels::emit(),
         &[
-            (0, storage(&by_depth.values)),
-            (1, storage(&rects)),
-            (2, storage(&offsets)),
+            (0, storage(shared.order)),
+            (1, storage(shared.rects)),
+            (2, storage(offsets)),
             (3, storage(&tile_pairs.keys)),
             (4, storage(&tile_pairs.values)),
             (EmitParams::BINDING, emit_params.as_entire_binding()),
-            (6, storage(&projected)),
+            (6, storage(shared.projected)),
         ],
-        groups(n, WG),
+        groups(shared.n, WG),
     );
     let by_tile = encode_radix_sort(
         ctx,
         &mut encoder,
         tile_pairs,
         pairs,
-        bits_for(frame.tiles()),
-        &mut keep,
+        bits_for(band.tiles()),
+        keep,
     )?;
     encoder.clear_buffer(&ranges.buffer, 0, Some(ranges.size));
     if pairs > 0 {
@@ -201,45 +360,37 @@ pub(crate) fn forward_impl(
             groups(pairs, WG),
         );
     }
-    let subgroups = ctx.info.features.subgroups && allow_subgroups;
     dispatch(
         ctx,
         &mut encoder,
-        &kernels::blend(variant, subgroups),
+        &kernels::blend(variant, shared.subgroups),
         &[
-            (0, storage(&projected)),
+            (0, storage(shared.projected)),
             (1, storage(&by_tile.values)),
             (2, storage(&ranges)),
-            (3, storage(&inputs[4])),
+            (3, storage(shared.features)),
             (4, storage(&image)),
             (5, storage(&pixel_state)),
             (Frame::BINDING, frame_buffer.as_entire_binding()),
         ],
-        groups(frame.tiles(), kernels::blend_tile_group(subgroups)),
+        groups(band.tiles(), kernels::blend_tile_group(shared.subgroups)),
     );
     ctx.queue.submit(Some(encoder.finish()));
-    let mut values = ctx.read::<f32>(&image, image_len)?;
-    drop(keep);
+    let values = ctx.read::<f32>(&image, image_len)?;
 
-    let depth = variant
-        .depth
-        .then(|| values.split_off(pixels * (variant.channels + 1)));
-    let alpha = values.split_off(pixels * variant.channels);
-    let output = RenderOutput {
-        features: values,
-        alpha,
-        depth,
-    };
-    let state = ForwardState {
-        frame,
+    // The band's rows are contiguous in every row-major output: append them.
+    let (features, rest) = values.split_at(pixels * variant.channels);
+    let (alpha, depth) = rest.split_at(pixels);
+    output.features.extend_from_slice(features);
+    output.alpha.extend_from_slice(alpha);
+    if let Some(out) = output.depth.as_mut() {
+        out.extend_from_slice(depth);
+    }
+    Ok(Band {
+        frame: band,
         frame_buffer,
-        variant,
-        inputs,
-        projected,
         tile_values: by_tile.values,
         ranges,
         pixel_state,
-        pairs,
-    };
-    Ok((output, state))
+    })
 }

@@ -21,7 +21,11 @@ pub struct Frame {
     pub height: u32,
     pub tiles_x: u32,
     pub tiles_y: u32,
-    pad: [u32; 3],
+    /// First image row of the band of rows this frame covers ([`Frame::band`]; 0 for a whole
+    /// image): `height` and `tiles_y` count the band's rows and tiles, pixel centres keep
+    /// their place in the whole image.
+    pub row0: u32,
+    pad: [u32; 2],
     background: [[f32; 4]; MAX_CHANNELS / 4],
 }
 
@@ -54,9 +58,30 @@ impl Frame {
             height: camera.height,
             tiles_x: camera.width.div_ceil(GPU_TILE),
             tiles_y: camera.height.div_ceil(GPU_TILE),
-            pad: [0; 3],
+            row0: 0,
+            pad: [0; 2],
             background: bg,
         }
+    }
+
+    /// The band of `rows` image rows from row `row0` (a multiple of the tile size) of this
+    /// whole-image frame. Everything else stays the whole image's, the Jacobian clamp's limits
+    /// included, so a band renders exactly the pixels the whole frame would.
+    pub fn band(&self, row0: u32, rows: u32) -> Frame {
+        debug_assert!(
+            self.row0 == 0 && row0.is_multiple_of(GPU_TILE) && row0 + rows <= self.height
+        );
+        Frame {
+            height: rows,
+            tiles_y: rows.div_ceil(GPU_TILE),
+            row0,
+            ..*self
+        }
+    }
+
+    /// The band's first tile row in the whole image's tile grid.
+    pub fn tile_row0(&self) -> u32 {
+        self.row0 / GPU_TILE
     }
 
     pub fn tiles(&self) -> u32 {

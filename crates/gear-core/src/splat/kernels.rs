@@ -242,11 +242,14 @@ pub trait KernelParams: Pod {
     const BINDING: u32;
 }
 
-/// Gaussians counted by tile_counts (`CountParams` in tile_counts.wgsl).
+/// Gaussians counted by tile_counts, and the band's tile rows [tile_y0, tile_y1)
+/// (`CountParams` in tile_counts.wgsl).
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 pub struct CountParams {
     pub n: u32,
+    pub tile_y0: u32,
+    pub tile_y1: u32,
 }
 
 impl KernelParams for CountParams {
@@ -254,12 +257,15 @@ impl KernelParams for CountParams {
     const BINDING: u32 = 3;
 }
 
-/// Gaussians emitting pairs, and the tile grid's width (`EmitParams` in emit.wgsl).
+/// Gaussians emitting pairs, the tile grid's width and the band's tile rows
+/// (`EmitParams` in emit.wgsl).
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 pub struct EmitParams {
     pub n: u32,
     pub tiles_x: u32,
+    pub tile_y0: u32,
+    pub tile_y1: u32,
 }
 
 impl KernelParams for EmitParams {

@@ -188,7 +188,7 @@ fn forward_errors(scene: &OwnedGaussians, cam: &Camera, depth: bool) -> (ImageEr
     let reference = reference::forward(&scene.view(), cam, &opts).unwrap();
     let (mut image, mut depth_err) = (ImageError::default(), ImageError::default());
     for subgroups in subgroup_choices() {
-        let (gpu, _) = forward_impl(&scene.view(), cam, &opts, subgroups, true).unwrap();
+        let (gpu, _) = forward_impl(&scene.view(), cam, &opts, subgroups, true, None).unwrap();
         image = image
             .worst(ImageError::of(&gpu.features, &reference.features))
             .worst(ImageError::of(&gpu.alpha, &reference.alpha));
@@ -251,7 +251,7 @@ fn gradients(
     path: BackwardPath,
 ) -> (GaussianGradients<f32>, GaussianGradients<f64>) {
     let opts = options(scene.channels, depth);
-    let (_, state) = forward_impl(&scene.view(), cam, &opts, path.subgroups, true).unwrap();
+    let (_, state) = forward_impl(&scene.view(), cam, &opts, path.subgroups, true, None).unwrap();
     let img = random_image_grads(cam.pixels(), scene.channels, 99);
     let grads = OutputGradients {
         features: &img[0][..],
@@ -388,7 +388,7 @@ fn features_grad_off_keeps_other_gradients() {
             };
             for path in backward_paths() {
                 let (_, state) =
-                    forward_impl(&scene.view(), &cam, &opts, path.subgroups, true).unwrap();
+                    forward_impl(&scene.view(), &cam, &opts, path.subgroups, true, None).unwrap();
                 let run = |features_grad| {
                     let accumulation = path.accumulation;
                     backward_impl(
@@ -461,7 +461,8 @@ fn check_finite(
     };
     let mut last = None;
     for path in backward_paths() {
-        let (out, state) = forward_impl(&scene.view(), cam, &opts, path.subgroups, true).unwrap();
+        let (out, state) =
+            forward_impl(&scene.view(), cam, &opts, path.subgroups, true, None).unwrap();
         let depth = out.depth.as_ref().unwrap();
         assert!(
             all_finite(&out.features) && all_finite(&out.alpha) && all_finite(depth),
@@ -669,5 +670,149 @@ fn saturated_scene_matches_reference() {
         let errors = gradient_errors(&gpu, &reference);
         eprintln!("saturated gradients {path:?}: {errors:?}");
         assert!(errors.iter().all(|&e| e < 1e-3), "{path:?}: {errors:?}");
+    }
+}
+
+// Large frames: an image whose per-pixel buffers or pair lists exceed one storage binding is
+// rendered in bands of tile rows (forward.rs); the tests force bands on small images with a
+// lower binding limit, and render one real large size.
+
+/// `g` in f64, to compare two f32 results with [`gradient_errors`].
+fn widened(g: &GaussianGradients<f32>) -> GaussianGradients<f64> {
+    let wide = |v: &[f32]| -> Vec<f64> { v.iter().map(|&x| f64::from(x)).collect() };
+    GaussianGradients {
+        means: g.means.iter().map(|r| r.map(f64::from)).collect(),
+        quats: g.quats.iter().map(|r| r.map(f64::from)).collect(),
+        log_scales: g.log_scales.iter().map(|r| r.map(f64::from)).collect(),
+        opacity_logits: wide(&g.opacity_logits),
+        features: wide(&g.features),
+    }
+}
+
+/// Renders `scene` whole and in bands under `limit` bytes per binding; asserts the banded
+/// images equal the whole ones bit for bit and the gradients agree to f32 summation order
+/// (the atomics add in another order); returns the number of bands.
+fn banded_matches_whole(scene: &OwnedGaussians, cam: &Camera, depth: bool, limit: u64) -> usize {
+    let opts = options(scene.channels, depth);
+    let (whole, whole_state) = forward_impl(&scene.view(), cam, &opts, true, true, None).unwrap();
+    assert_eq!(whole_state.bands(), 1);
+    let (banded, state) = forward_impl(&scene.view(), cam, &opts, true, true, Some(limit)).unwrap();
+    assert!(
+        banded == whole,
+        "banded images differ from the whole frame's"
+    );
+    assert_eq!(
+        state.pairs, whole_state.pairs,
+        "bands hold other tile lists"
+    );
+    let img = random_image_grads(cam.pixels(), scene.channels, 5);
+    let grads = OutputGradients {
+        features: &img[0][..],
+        alpha: &img[1][..],
+        depth: depth.then_some(&img[2][..]),
+    };
+    for path in backward_paths() {
+        let run = |state| {
+            backward_impl(state, &grads, path.accumulation, true, path.subgroups, true).unwrap()
+        };
+        let errors = gradient_errors(&run(&state), &widened(&run(&whole_state)));
+        assert!(errors.iter().all(|&e| e < 1e-5), "{path:?}: {errors:?}");
+    }
+    state.bands()
+}
+
+/// 16 rows of 100 pixels of 3 features, alpha and depth fit in the limit, 24 do not: 83 rows
+/// (not a multiple of the tile) become six bands, Gaussians straddling their edges.
+#[test]
+fn image_bands_render_exactly_like_one_frame() {
+    let scene = random_scene_sized(400, 3, 31, -3.5);
+    let limit = 100 * 5 * 4 * 16 + 100;
+    let bands = banded_matches_whole(&scene, &camera(100, 83), true, limit);
+    assert_eq!(bands, 6);
+}
+
+/// The whole 64 x 64 image (one feature, no depth: two values per pixel) fits in the limit,
+/// but its tile-Gaussian pairs do not: the band is halved until each half's pairs fit.
+#[test]
+fn bands_whose_pairs_overflow_are_halved() {
+    let scene = random_scene_sized(700, 1, 7, -1.5);
+    let cam = camera(64, 64);
+    let limit = 64 * 64 * 2 * 4;
+    let (_, state) = super::forward(&scene.view(), &cam, &options(1, false)).unwrap();
+    assert!(
+        u64::from(state.pairs) * 4 > 2 * limit,
+        "{} pairs: too few to need halving twice",
+        state.pairs
+    );
+    let bands = banded_matches_whole(&scene, &cam, false, limit);
+    assert!(bands >= 3, "{bands} bands");
+}
+
+/// A 3840 x 2160 frame with 3 features and depth (166 MB of images, more than the 128 MiB one
+/// storage binding holds on lavapipe and many GPUs) renders on both executors and matches
+/// the f64 reference, images and gradients. Few, mostly small Gaussians keep it quick; a
+/// few large ones cross the bands' edges.
+#[test]
+fn large_frame_renders_on_both_executors() {
+    let cam = camera(3840, 2160);
+    let mut scene = random_scene_sized(150, 3, 17, -6.0);
+    for (i, y) in [0.0f32, 0.76, 0.79].iter().enumerate() {
+        let features = [0.3, 0.6, 0.9];
+        scene.push(
+            [0.1 * i as f32, *y, 0.0],
+            [1.0, 0.2, 0.0, 0.1],
+            [-2.5; 3],
+            1.0,
+            &features,
+        );
+    }
+    let opts = options(3, true);
+    let ctx = GpuContext::global().unwrap();
+    let reference = reference::forward(&scene.view(), &cam, &opts).unwrap();
+    let (gpu, gpu_state) = super::forward(&scene.view(), &cam, &opts).unwrap();
+    let image_bytes = cam.pixels() as u64 * 5 * 4;
+    if image_bytes > ctx.info.max_storage_binding_bytes {
+        assert!(gpu_state.bands() >= 2, "{} band(s)", gpu_state.bands());
+    }
+    let (cpu, cpu_state) = super::cpu::forward(&scene.view(), &cam, &opts).unwrap();
+    // A handful of pixels sit on the 1/255 alpha cut-off, where f32 and f64 decide apart
+    // (as in forward_matches_reference); in depth such a flip weighs z / 255.
+    for (name, out) in [("wgpu", &gpu), ("cpu", &cpu)] {
+        let image = ImageError::of(&out.features, &reference.features)
+            .worst(ImageError::of(&out.alpha, &reference.alpha));
+        assert!(image.within_flips(), "{name} image: {image:?}");
+        let depth = ImageError::of(
+            out.depth.as_ref().unwrap(),
+            reference.depth.as_ref().unwrap(),
+        );
+        assert!(
+            depth.over <= 2e-4 && depth.max <= 6.0 / 255.0,
+            "{name} depth: {depth:?}"
+        );
+    }
+    let covered = reference.alpha.iter().filter(|&&a| a > 0.01).count();
+    assert!(covered > 10_000, "only {covered} pixels covered");
+
+    let img = random_image_grads(cam.pixels(), 3, 11);
+    let grads = OutputGradients {
+        features: &img[0][..],
+        alpha: &img[1][..],
+        depth: Some(&img[2][..]),
+    };
+    let wide: Vec<Vec<f64>> = img
+        .iter()
+        .map(|v| v.iter().map(|&x| f64::from(x)).collect())
+        .collect();
+    let wide_grads = OutputGradients {
+        features: &wide[0][..],
+        alpha: &wide[1][..],
+        depth: Some(&wide[2][..]),
+    };
+    let expected = reference::backward(&scene.view(), &cam, &opts, &wide_grads).unwrap();
+    let gpu_grads = super::backward(&gpu_state, &grads, Accumulation::Auto, true).unwrap();
+    let cpu_grads = super::cpu::backward(&cpu_state, &grads, true).unwrap();
+    for (name, g) in [("wgpu", &gpu_grads), ("cpu", &cpu_grads)] {
+        let errors = gradient_errors(g, &expected);
+        assert!(errors.iter().all(|&e| e < 1e-3), "{name}: {errors:?}");
     }
 }

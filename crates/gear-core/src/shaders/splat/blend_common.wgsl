@@ -12,11 +12,11 @@
 
 // The pixel row `row` of `tile` that a blend thread works on.
 struct TileRow {
-    // Index of the row's first pixel in the image.
+    // Index of the row's first pixel in the band's images.
     start: u32,
     // Pixels of the row inside the image (0 for a row below it).
     len: u32,
-    // Pixel-centre y, and the x of the centres of its first four pixels.
+    // Pixel-centre y (in the whole image), and the x of the centres of its first four pixels.
     cy: f32,
     xs: vec4<f32>,
 }
@@ -27,7 +27,7 @@ fn tile_row(tile: u32, row: u32) -> TileRow {
     return TileRow(
         py * frame.width + x0,
         select(0u, min(TILE, frame.width - x0), py < frame.height),
-        f32(py) + 0.5,
+        f32(frame.row0 + py) + 0.5,
         f32(x0) + vec4<f32>(0.5, 1.5, 2.5, 3.5),
     );
 }

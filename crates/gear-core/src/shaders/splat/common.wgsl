@@ -18,7 +18,8 @@ struct Frame {
     height: u32,
     tiles_x: u32,
     tiles_y: u32,
-    pad0: u32,
+    // First image row of the band this frame covers (height and tiles_y count the band's).
+    row0: u32,
     pad1: u32,
     pad2: u32,
     background: array<vec4<f32>, 16>,

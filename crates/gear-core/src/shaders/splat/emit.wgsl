@@ -1,5 +1,5 @@
 // Stage 3, one thread per Gaussian in depth order: writes a (tile id, Gaussian) pair for every
-// tile of its rectangle that it reaches (tile_test.wgsl) at the scanned offset, never past the
+// tile of its rectangle (within the band) that it reaches (tile_test.wgsl) at the scanned offset, never past the
 // next Gaussian's offset; should rounding make it find fewer tiles than tile_counts.wgsl did,
 // the rest of its slots get other tiles of its rectangle (harmless: the blend tests pixels).
 // Pairs are thus in depth order, and a stable sort by tile id alone leaves each tile's list
@@ -8,6 +8,10 @@
 struct EmitParams {
     n: u32,
     tiles_x: u32,
+    // The band's tile rows [tile_y0, tile_y1) of the whole image's grid (tile ids are the
+    // band's: counted from its first row).
+    tile_y0: u32,
+    tile_y1: u32,
 }
 
 @group(0) @binding(0) var<storage, read> order: array<u32>;
@@ -30,10 +34,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     var slot = offsets[i];
     let end = offsets[i + 1u];
     for (var round = 0u; round < 2u && slot < end; round++) {
-        for (var y = r.y; y < r.w; y++) {
+        for (var y = max(r.y, params.tile_y0); y < min(r.w, params.tile_y1); y++) {
             for (var x = r.x; x < r.z; x++) {
                 if slot < end && meets_tile(gaussian, x, y) == (round == 0u) {
-                    tile_keys[slot] = y * params.tiles_x + x;
+                    tile_keys[slot] = (y - params.tile_y0) * params.tiles_x + x;
                     tile_values[slot] = g;
                     slot++;
                 }
