@@ -148,7 +148,7 @@ pub(crate) fn forward_impl(
     let mut keep = Vec::new();
 
     // Submitted with the first band's tile counts: project, depth sort.
-    let projected = ctx.storage::<[f32; 12]>(n as usize)?;
+    let projected = ctx.storage::<[f32; 8]>(n as usize)?;
     let rects = ctx.storage::<[u32; 4]>(n as usize)?;
     let depth_keys = ctx.storage::<u32>(n as usize)?;
     let mut encoder = ctx.device.create_command_encoder(&Default::default());

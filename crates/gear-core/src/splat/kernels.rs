@@ -59,16 +59,28 @@ macro_rules! splat_source {
     };
 }
 
-const PROJECT: &str = splat_source!("common", "project_common", "project");
+const PROJECT: &str = splat_source!("common", "level", "project_common", "project");
 const PROJECT_BACKWARD: &str = splat_source!("common", "project_common", "project_backward");
 /// Blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or not.
-const BLEND_SUBGROUP: &str =
-    splat_source!("common", "tile_share_subgroup", "blend_common", "blend");
-const BLEND_ROWS: &str = splat_source!("common", "tile_share_rows", "blend_common", "blend");
+const BLEND_SUBGROUP: &str = splat_source!(
+    "common",
+    "level",
+    "tile_share_subgroup",
+    "blend_common",
+    "blend"
+);
+const BLEND_ROWS: &str = splat_source!(
+    "common",
+    "level",
+    "tile_share_rows",
+    "blend_common",
+    "blend"
+);
 /// Blend backward's accumulation (native f32 atomics or compare-and-swap), then how its rows
 /// share loads and atomics (over a subgroup, or not at all).
 const BLEND_BACKWARD_FLOAT_SUBGROUP: &str = splat_source!(
     "common",
+    "level",
     "atomic_float",
     "tile_share_subgroup",
     "blend_common",
@@ -76,6 +88,7 @@ const BLEND_BACKWARD_FLOAT_SUBGROUP: &str = splat_source!(
 );
 const BLEND_BACKWARD_FLOAT_ROWS: &str = splat_source!(
     "common",
+    "level",
     "atomic_float",
     "tile_share_rows",
     "blend_common",
@@ -83,6 +96,7 @@ const BLEND_BACKWARD_FLOAT_ROWS: &str = splat_source!(
 );
 const BLEND_BACKWARD_CAS_SUBGROUP: &str = splat_source!(
     "common",
+    "level",
     "atomic_cas",
     "tile_share_subgroup",
     "blend_common",
@@ -90,6 +104,7 @@ const BLEND_BACKWARD_CAS_SUBGROUP: &str = splat_source!(
 );
 const BLEND_BACKWARD_CAS_ROWS: &str = splat_source!(
     "common",
+    "level",
     "atomic_cas",
     "tile_share_rows",
     "blend_common",
@@ -217,15 +232,19 @@ pub fn radix_scatter(bits: u32, identity_values: bool) -> ShaderSpec {
 }
 
 pub fn tile_counts() -> ShaderSpec {
-    const SOURCE: &str = splat_source!("tile_test", "tile_counts");
+    const SOURCE: &str = splat_source!("level", "tile_test", "tile_counts");
     let spec = ShaderSpec::new("splat_tile_counts", SOURCE, "main");
-    with_workgroup(spec, WG).with("TILE", format!("{GPU_TILE}u"))
+    with_workgroup(spec, WG)
+        .with("TILE", format!("{GPU_TILE}u"))
+        .with("MIN_ALPHA", f32_literal(MIN_ALPHA))
 }
 
 pub fn emit() -> ShaderSpec {
-    const SOURCE: &str = splat_source!("tile_test", "emit");
+    const SOURCE: &str = splat_source!("level", "tile_test", "emit");
     let spec = ShaderSpec::new("splat_emit", SOURCE, "main");
-    with_workgroup(spec, WG).with("TILE", format!("{GPU_TILE}u"))
+    with_workgroup(spec, WG)
+        .with("TILE", format!("{GPU_TILE}u"))
+        .with("MIN_ALPHA", f32_literal(MIN_ALPHA))
 }
 
 pub fn tile_ranges() -> ShaderSpec {

@@ -3,7 +3,7 @@
 // it is up to tile_share_*.wgsl, included before), the test of which quads of a row an entry
 // can reach, and the contract's evaluation of an entry at four pixels of a row.
 
-// Per Gaussian: (u, v, z, opacity), (conic a, b, c, level), (row bounds) (see project.wgsl).
+// Per Gaussian: (u, v, z, opacity), (conic a, b, c, det Σ2D) (see project.wgsl).
 @group(0) @binding(0) var<storage, read> projected: array<vec4<f32>>;
 // Per tile, its Gaussians in depth order ([start, end) of each tile in `ranges`).
 @group(0) @binding(1) var<storage, read> tile_values: array<u32>;
@@ -38,9 +38,8 @@ struct Entry {
     gaussian: u32,
     // (u, v, z, opacity).
     head: vec4<f32>,
-    conic: vec3<f32>,
-    // The ellipse's row bounds (reach, slope, span; project.wgsl).
-    bounds: vec3<f32>,
+    // Conic a, b, c and det Σ2D.
+    conic: vec4<f32>,
 }
 
 // List entry k, its features into `own`. Call in uniform control flow, with `leader` from
@@ -49,12 +48,10 @@ fn load_entry(k: u32, leader: bool, own: ptr<function, array<f32, CHANNELS>>) ->
     var g = 0u;
     var head = vec4<f32>(0.0);
     var conic = vec4<f32>(0.0);
-    var bounds = vec4<f32>(0.0);
     if leader {
         g = tile_values[k];
-        head = projected[3u * g];
-        conic = projected[3u * g + 1u];
-        bounds = projected[3u * g + 2u];
+        head = projected[2u * g];
+        conic = projected[2u * g + 1u];
         for (var c = 0u; c < CHANNELS; c++) {
             (*own)[c] = features[g * CHANNELS + c];
         }
@@ -62,24 +59,26 @@ fn load_entry(k: u32, leader: bool, own: ptr<function, array<f32, CHANNELS>>) ->
     for (var c = 0u; c < CHANNELS; c++) {
         (*own)[c] = from_leader_f32((*own)[c]);
     }
-    return Entry(
-        g,
-        from_leader_vec4(head),
-        from_leader_vec4(conic).xyz,
-        from_leader_vec4(bounds).xyz,
-    );
+    return Entry(g, from_leader_vec4(head), from_leader_vec4(conic));
 }
 
 // The x interval [lo, hi] that entry `e`'s 1/255 ellipse spans on the pixel row y = cy,
-// widened by ROW_SPAN_SLACK pixels; empty (lo > hi) where the ellipse misses the row. A few
-// multiplies and one square root, against an exponential per pixel: the blend kernels test
-// it before evaluating a quad, and skip the quads no row of the tile needs (those whose
-// pixel centres lie outside it on every row, or whose pixels have all stopped).
+// widened by ROW_SPAN_SLACK pixels; empty (lo > hi) where the ellipse misses the row. The
+// blend kernels test it before evaluating a quad, and skip the quads no row of the tile needs
+// (those whose pixel centres lie outside it on every row, or whose pixels have all stopped).
+// With conic (a, b, c) and D = det Σ2D, dᵀ conic d <= level' on the row at dy spans
+// u - (b / a)·dy ± sqrt((level'·a·D - dy²) / (a²·D)): no a·c - b², so no cancellation for long
+// thin Gaussians. level' is the level widened by ROW_LEVEL_MARGIN (relative and absolute) so
+// that f32 rounding never makes a quad skip a pixel its own alpha test would take. The
+// bounds are recomputed per entry rather than stored: on the software adapter loading a third
+// vec4 per entry cost more (10-25 % of the forward) than the row test saves.
 fn row_span(e: Entry, cy: f32) -> vec2<f32> {
+    let level = level_of(e.head.w) * (1.0 + ROW_LEVEL_MARGIN) + ROW_LEVEL_MARGIN;
+    let a = e.conic.x;
     let dy = cy - e.head.y;
-    let room = e.bounds.x - dy * dy;
-    let half = sqrt(max(room, 0.0) * e.bounds.z) + ROW_SPAN_SLACK;
-    let centre = e.head.x + e.bounds.y * dy;
+    let room = level * a * e.conic.w - dy * dy;
+    let half = sqrt(max(room, 0.0) / (a * a * e.conic.w)) + ROW_SPAN_SLACK;
+    let centre = e.head.x - e.conic.y / a * dy;
     return select(vec2<f32>(1.0, -1.0), vec2<f32>(centre - half, centre + half), room >= 0.0);
 }
 

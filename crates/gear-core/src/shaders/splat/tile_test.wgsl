@@ -2,8 +2,8 @@
 // dᵀ conic d > level = 2 ln(255 o) (alpha below 1/255), so a tile whose every point is past
 // that level (with a margin for f32 rounding) needs no (tile, Gaussian) pair. Shared by
 // tile_counts.wgsl and emit.wgsl, which must agree; where rounding could make them disagree
-// the margin makes either answer correct. Needs `projected` (project.wgsl layout, level in the
-// conic's w) and TILE.
+// the margin makes either answer correct. Needs `projected` (project.wgsl layout), level_of
+// (level.wgsl) and TILE.
 
 // Minimum of a q² + 2 b q t + c t² over t in [lo, hi] for fixed q (c > 0).
 fn edge_minimum(q: f32, a: f32, b: f32, c: f32, lo: f32, hi: f32) -> f32 {
@@ -19,7 +19,8 @@ struct TileTest {
 }
 
 fn tile_test_of(g: u32) -> TileTest {
-    return TileTest(projected[3u * g].xy, projected[3u * g + 1u]);
+    let head = projected[2u * g];
+    return TileTest(head.xy, vec4<f32>(projected[2u * g + 1u].xyz, level_of(head.w)));
 }
 
 fn meets_tile(gaussian: TileTest, tx: u32, ty: u32) -> bool {
