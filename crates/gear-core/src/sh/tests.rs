@@ -56,7 +56,14 @@ fn check_executor(
     backward: fn(&ShInput<'_, f32>, &[f32]) -> crate::Result<ShGradients<f32>>,
 ) {
     for degree in 0..=MAX_DEGREE {
-        for (n, scale) in [(0usize, 1.0f32), (1, 1.0), (1000, 1.0), (333, 1e6)] {
+        // 20,000 Gaussians span several of the CPU executor's parallel chunks.
+        for (n, scale) in [
+            (0usize, 1.0f32),
+            (1, 1.0),
+            (1000, 1.0),
+            (333, 1e6),
+            (20_000, 1.0),
+        ] {
             let (dirs, coeffs, grad_rgb) = scene(n, degree, scale, 17 + u64::from(degree));
             let input = ShInput {
                 dirs: &dirs,
