@@ -99,7 +99,7 @@ class TrainConfig:
     lr_opacity: float = 0.05
     lr_colors: float = 5e-3
     lr_logits: float = 0.05
-    lr_sh: float = 2.5e-4  # the spherical-harmonic coefficients above degree 0
+    lr_sh: float = 1e-3  # the spherical-harmonic coefficients above degree 0
     lr_motion_rot: float = 1e-3
     lr_motion_trans: float = 1e-3  # x scene extent
 
