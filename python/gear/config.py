@@ -81,6 +81,11 @@ class TrainConfig:
     prune_max_scale: float = 0.1  # fraction of the scene extent
     max_gaussians: int = 1_000_000
 
+    # --- appearance ---
+    # Degree (0..3) of the spherical harmonics that make colours view-dependent: 0 = one colour
+    # per Gaussian, no cost; real captures' highlights need 3 (docs/training.md, "sh_degree").
+    sh_degree: int = 0
+
     # --- initialisation (stage 1) ---
     init_voxel_fraction: float = 0.005  # depth back-projection downsampling, x scene extent
     init_max_points: int = 100_000
@@ -94,6 +99,7 @@ class TrainConfig:
     lr_opacity: float = 0.05
     lr_colors: float = 5e-3
     lr_logits: float = 0.05
+    lr_sh: float = 1e-3  # the spherical-harmonic coefficients above degree 0
     lr_motion_rot: float = 1e-3
     lr_motion_trans: float = 1e-3  # x scene extent
 
@@ -142,11 +148,12 @@ RANGES: dict[str, tuple[float, float | None, bool]] = {
     "init_voxel_fraction": _POSITIVE, "init_max_points": _AT_LEAST_1,
     "random_init_points": _AT_LEAST_1, "checkpoint_every": _AT_LEAST_1,
     "log_every": _AT_LEAST_1, "mesh_voxel": _POSITIVE, "mesh_trunc": _POSITIVE,
+    "sh_degree": (0, 3, True),
     **{name: _AT_LEAST_0 for name in ("lambda_dssim", "lambda_depth", "lambda_sam",
                                      "lambda_knn", "lambda_opacity", "lambda_anchor")},
     **{name: _POSITIVE for name in ("lr_means", "lr_means_final", "lr_quats", "lr_log_scales",
-                                   "lr_opacity", "lr_colors", "lr_logits", "lr_motion_rot",
-                                   "lr_motion_trans")},
+                                   "lr_opacity", "lr_colors", "lr_logits", "lr_sh",
+                                   "lr_motion_rot", "lr_motion_trans")},
 }
 CHOICES = {"schedule": SCHEDULES, "profile": PROFILES}
 

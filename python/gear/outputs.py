@@ -17,10 +17,11 @@ from PIL import Image
 from gear.articulation import PartMotion
 from gear.camera import Camera
 from gear.kinematics import pose_parts
+from gear.sh import SH_C0
 from gear.splats import Gaussians, render
+from gear.splats.sh import SH_PARAM, view_rgb
 
 BACKGROUND_PART = 255
-_SH_C0 = 0.28209479177387814  # degree-0 spherical harmonic: rgb = 0.5 + C0 * f_dc
 
 
 def posed(g: Gaussians, motion: PartMotion | None, state: str,
@@ -36,20 +37,27 @@ def posed(g: Gaussians, motion: PartMotion | None, state: str,
 
 def write_ply(path: Path, g: Gaussians) -> None:
     """Binary little-endian PLY in the layout 3D Gaussian Splatting viewers read (x y z,
-    normals, f_dc_0..2, opacity logit, scale_0..2 as logs, rot_0..3 as w x y z) plus `part`."""
+    normals, f_dc_0..2, f_rest_* with spherical harmonics (channel-major), opacity logit,
+    scale_0..2 as logs, rot_0..3 as w x y z) plus `part`."""
     n = len(g)
     rgb = g.rgb().detach().numpy()
+    rest = g.params.get(SH_PARAM)
+    # [N, K-1, 3] -> [N, 3 * (K-1)]: all of red's coefficients, then green's, then blue's.
+    f_rest = None if rest is None else rest.detach().transpose(1, 2).reshape(n, -1).numpy()
+    rest_fields = [] if f_rest is None else [(f"f_rest_{i}", "f4") for i in range(f_rest.shape[1])]
     fields = [
         ("x", "f4"), ("y", "f4"), ("z", "f4"), ("nx", "f4"), ("ny", "f4"), ("nz", "f4"),
-        ("f_dc_0", "f4"), ("f_dc_1", "f4"), ("f_dc_2", "f4"), ("opacity", "f4"),
+        ("f_dc_0", "f4"), ("f_dc_1", "f4"), ("f_dc_2", "f4"), *rest_fields, ("opacity", "f4"),
         ("scale_0", "f4"), ("scale_1", "f4"), ("scale_2", "f4"),
         ("rot_0", "f4"), ("rot_1", "f4"), ("rot_2", "f4"), ("rot_3", "f4"), ("part", "i4"),
     ]
     data = np.zeros(n, dtype=[(name, "<" + t) for name, t in fields])
     means = g["means"].detach().numpy()
     data["x"], data["y"], data["z"] = means.T
-    f_dc = (rgb - 0.5) / _SH_C0
+    f_dc = (rgb - 0.5) / SH_C0
     data["f_dc_0"], data["f_dc_1"], data["f_dc_2"] = f_dc.T
+    for i, (name, _) in enumerate(rest_fields):
+        data[name] = f_rest[:, i]
     data["opacity"] = g["opacity"].detach().numpy()
     scales = g["log_scales"].detach().numpy()
     data["scale_0"], data["scale_1"], data["scale_2"] = scales.T
@@ -71,8 +79,9 @@ def _render_parts(g: Gaussians, means: torch.Tensor, quats: torch.Tensor, cam: C
     k = g.num_parts
     onehot = F.one_hot(g.part_ids(), k).float()
     with torch.no_grad():
-        out = render(g, cam, pose=(means, quats),
-                     features=torch.cat([g.rgb().detach(), onehot], dim=1), detach=True)
+        rgb = view_rgb(g, g.rgb(), cam, means, quats, g["quats"])
+        out = render(g, cam, pose=(means, quats), features=torch.cat([rgb, onehot], dim=1),
+                     detach=True)
     ids = out.features[..., 3:].argmax(dim=-1).numpy().astype(np.uint8)
     ids[out.alpha.numpy() < 0.5] = BACKGROUND_PART
     rgb = out.features[..., :3].clamp(0, 1).numpy()

@@ -4,6 +4,7 @@
 mod args;
 mod errors;
 mod geometry;
+mod sh;
 mod splat;
 
 use pyo3::prelude::*;
@@ -50,5 +51,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(sum_f32, m)?)?;
     splat::register(m)?;
     geometry::register(m)?;
+    sh::register(m)?;
     Ok(())
 }

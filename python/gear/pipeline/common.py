@@ -53,6 +53,7 @@ def gaussian_lrs(config: TrainConfig, extent: float) -> dict[str, float]:
         opacity=config.lr_opacity,
         colors=config.lr_colors,
         logits=config.lr_logits,
+        sh=config.lr_sh,
     )
 
 

@@ -15,6 +15,7 @@ from gear.pipeline.common import Stage, TrainView, check_finite, gaussian_lrs, i
 from gear.pipeline.runner import Runner
 from gear.splats import Densifier, Gaussians, render
 from gear.splats.init import initial_gaussians, scene_extent
+from gear.splats.sh import add_sh
 
 # Weight of the silhouette loss on a view without depth (docs/method.md, "Stage 1").
 MASK_WEIGHT_WITHOUT_DEPTH = 1.0
@@ -102,6 +103,7 @@ def reconstruct_states(views: dict[str, list], train_views: dict[str, list[Train
             start = resume["iteration"]
         else:
             g = initial_gaussians(views[state], c, c.seed + index)
+            add_sh(g, c.sh_degree, c.lr_sh)
             runner.log.say(f"{name}: {len(g)} initial Gaussians")
         stage = ReconstructState(g, train_views[state], c, c.seed * 1000 + index, state)
         if start:

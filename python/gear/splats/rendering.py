@@ -10,6 +10,7 @@ from typing import Any, Protocol
 import torch
 
 from gear.camera import Camera
+from gear.splats.sh import view_rgb
 
 
 class Splats(Protocol):
@@ -48,16 +49,20 @@ def render(
     """`splats` seen from `camera` over `background` [C] (black when None).
 
     pose: (means, quats) to draw instead of the stored ones (a posed or deformed model, see
-    gear.kinematics.pose_parts). features: [N,C] to blend instead of the RGB colours.
+    gear.kinematics.pose_parts). features: [N,C] to blend instead of the RGB colours (those
+    are view-dependent when the splats carry spherical harmonics, see gear.splats.sh).
     detach: no gradient reaches the stored parameters (a given pose or features keep their
     own graph)."""
     stored = splats.splat_arrays()
     if detach:
         stored = tuple(t.detach() for t in stored)
     means, quats, log_scales, opacity, rgb = stored
+    canonical_quats = quats
     if pose is not None:
         means, quats = pose
-    feats = rgb if features is None else features
+    feats = features
+    if feats is None:  # the colours, view-dependent when the splats carry SH coefficients
+        feats = view_rgb(splats, rgb, camera, means, quats, canonical_quats, detach)
     bg = torch.zeros(feats.shape[1]) if background is None else background
     return rasterizer()(means, quats, log_scales, opacity, feats, camera, background=bg,
                         depth=depth)

@@ -22,6 +22,11 @@ mod test_rng;
 #[cfg(test)]
 mod tests;
 
+/// How kernels outside the rasterizer (e.g. [`crate::sh`]) declare and dispatch theirs.
+pub(crate) mod kernel_dispatch {
+    pub use super::kernels::{dispatch, groups, storage, uniform, KernelParams};
+}
+
 pub use backward::{backward, Accumulation};
 pub use forward::{forward, ForwardState};
 pub use types::{

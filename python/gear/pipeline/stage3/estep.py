@@ -19,6 +19,7 @@ from gear.losses import (
 from gear.pipeline.common import check_finite, image_terms, means_lr
 from gear.pipeline.stage3.shared import RefineState
 from gear.splats import render
+from gear.splats.sh import SH_PARAM
 
 
 def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
@@ -34,7 +35,9 @@ def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
     index, view, bg = state.target_view()
     means_d, quats_d = deform(g["means"], g["quats"], weights, qr, qd)
     means_d.retain_grad()
-    rgb = g.rgb()
+    # Shared by both renders; with spherical harmonics the colours depend on the camera and
+    # the pose, so each render computes its own.
+    rgb = None if SH_PARAM in g.params else g.rgb()
     out = render(g, view.camera, bg, pose=(means_d, quats_d), features=rgb,
                  depth=view.depth is not None)
     terms = image_terms(out, view, bg, c)
