@@ -127,8 +127,8 @@ def select(scenes: list[RealScene], names: str | None) -> list[RealScene]:
     if unknown:
         raise ValueError(f"unknown real-suite object(s) {', '.join(unknown)}; known: "
                          f"{', '.join(s.name for s in scenes)}")
-    chosen = [s for n in wanted for s in scenes if matches(n, s)]
-    return list(dict.fromkeys(chosen))
+    chosen = {s.name: s for n in wanted for s in scenes if matches(n, s)}  # once each, in order
+    return list(chosen.values())
 
 
 def render_real(scene: RealScene, assets: Path, out: Path, res: int, views: int,
