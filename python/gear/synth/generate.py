@@ -86,12 +86,13 @@ def render_scene(
         )
     out = Path(out_dir)
     _prepare_out(out)
+    center, radius = bounds(obj)  # before any rotation: the cameras frame the same sphere
+    solid = SolidTexture.seeded(seed, 2 * radius)
     rotation = None if np.allclose(up_vector, RENDERER_UP) else up_rotation(up_vector)
-    solid = SolidTexture.seeded(seed, 2 * bounds(obj)[1])
     light = LIGHT_DIR
     if rotation is not None:
         obj, solid, light = obj.rotated(rotation), solid.rotated(rotation), rotation @ LIGHT_DIR
-    center, radius = bounds(obj)
+        center = rotation @ center
     counts = {"train": views, "test": test_views}
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny ops: one thread is faster, and fair to a shared machine
