@@ -48,7 +48,7 @@ def test_every_asset_gives_scenes_by_the_rules():
             assert start == pytest.approx(np.clip(0.0, lower, upper))
             assert lower - 1e-12 <= end <= upper + 1e-12
             moved = abs(end - start) / (upper - lower)
-            if start == end or scene.name == "fridge-180" and name == "joint_0":
+            if start == end or (scene.name == "fridge-180" and name == "joint_0"):
                 continue
             at_limit = min(abs(end - lower), abs(end - upper)) < 1e-12
             assert MOTION_FRACTION[0] - 1e-9 <= moved <= MOTION_FRACTION[1] + 1e-9 or at_limit
@@ -72,7 +72,7 @@ def test_select_by_name_in_order():
         "scissors", "fridge", "fridge-180"]
     assert [s.name for s in select(scenes, "stapler")] == ["stapler-joint_0", "stapler-joint_1"]
     assert select(scenes, "") == scenes
-    with pytest.raises(ValueError, match="unknown real-suite object.*teapot"):
+    with pytest.raises(ValueError, match=r"unknown real-suite object.*teapot"):
         select(scenes, "scissors,teapot")
 
 
