@@ -274,6 +274,9 @@ def test_cli(tmp_path, capsys):
     (tmp_path / "other" / "keep.txt").write_text("x")
     assert main(["synth", "handle", "--out", str(tmp_path / "other")]) == 1
     assert main(["synth", "handle", "--out", str(out), "--effects", "sparkles"]) == 1
+    assert main(["synth", "handle", "--out", str(out), *one, "--up=-y"]) == 0
+    assert json.loads((out / "synth.json").read_text())["up"] == [0.0, -1.0, 0.0]
+    assert main(["synth", "handle", "--out", str(out), *one, "--up", "sideways"]) == 1
     assert main(["synth", "--list"]) == 0
     assert "storage7" in capsys.readouterr().out
     assert torch.get_num_threads() >= 1
