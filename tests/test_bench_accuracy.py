@@ -17,11 +17,13 @@ from gear.bench.accuracy import (
     markdown_table,
     read_csv,
     scaled_em_interval,
+    type_counts,
     variants,
     write_results,
 )
 from gear.cli import main
 from gear.config import make_config
+from gear.data import load_scene
 
 
 def fake_runs() -> list[Run]:
@@ -220,3 +222,84 @@ def test_run_loop_records_every_run_and_failure(tmp_path, monkeypatch, capsys):
     # A scene folder cannot be regenerated with flawed masks: recorded as skipped, with why.
     assert status["masks:mask-over"].startswith("skipped: ")
     assert "built-in object name" in status["masks:mask-over"]
+
+
+def test_suite_table_and_plot_show_structure_per_object(tmp_path):
+    runs = [
+        Run("scissors", "quick", iterations=300, timings={"stage1": 60.0, "stage3": 80.0},
+            metrics={"axis_ang": 87.6, "axis_pos": 0.25, "geo_dist_deg": 178.6, "cd_m": 7.4,
+                     "part_iou": 0.34}, parts_true=2, parts_found=3,
+            types_true=type_counts(["rotate"]), types_found=type_counts(["revolute"] * 2)),
+        Run("cabinet_tall", "quick", iterations=300, timings={"stage1": 90.0},
+            metrics={"axis_ang": 0.5, "geo_dist_m": 0.01, "part_iou": 0.8}, parts_true=3,
+            parts_found=3, types_true="1R+1P", types_found="1R+1P"),
+        Run("fridge", "quick", iterations=300, status="failed: stage 2 | no motion"),
+    ]
+    paths = write_results(runs, tmp_path / "real", "m", suite=True)
+    md = paths["md"].read_text()
+    table = [ln for ln in md.splitlines() if ln.startswith("|")]
+    assert len(table) == 2 + len(runs) and len({ln.count("|") for ln in table}) == 1
+    assert "| scissors | quick | 3 / 2 | 2R / 1R | 87.600 | 0.250 | 178.6 | - | 7.400 | 0.340 " \
+           "| 140.0 | ok |" in md
+    assert "| fridge | quick | - / - | - / - |" in table[-1]
+    assert "failed: stage 2 / no motion" in table[-1]
+    back = read_csv(paths["csv"])
+    assert [(r.parts_true, r.parts_found, r.types_true, r.types_found) for r in back] == [
+        (2, 3, "1R", "2R"), (3, 3, "1R+1P", "1R+1P"), (None, None, "", "")]
+    image = np.asarray(Image.open(paths["png"]).convert("L"), dtype=float)
+    assert image.std() > 10
+
+
+def test_type_counts_ignore_order():
+    assert type_counts(["revolute", "prismatic", "revolute"]) == "2R+1P"
+    assert type_counts(["translate", "rotate", "rotate"]) == "2R+1P"
+    assert type_counts([]) == "-"
+
+
+SUITE_URDF = """<?xml version="1.0"?>
+<robot name="two_lids">
+  <link name="base"><visual><geometry><box size="0.4 0.4 0.2"/></geometry></visual></link>
+  <link name="lid"><visual><origin xyz="0.1 0 0"/>
+    <geometry><box size="0.2 0.4 0.02"/></geometry></visual></link>
+  <link name="flap"><visual><origin xyz="0 0.1 0"/>
+    <geometry><box size="0.1 0.2 0.02"/></geometry></visual></link>
+  <joint name="hinge" type="revolute"><origin xyz="-0.2 0 0.11"/><axis xyz="0 1 0"/>
+    <parent link="base"/><child link="lid"/><limit lower="-1.5" upper="0.5"/></joint>
+  <joint name="flap_hinge" type="revolute"><origin xyz="0.1 0.2 0"/><axis xyz="1 0 0"/>
+    <parent link="lid"/><child link="flap"/><limit lower="0" upper="1"/></joint>
+</robot>
+"""
+
+
+def test_suite_run_loop_renders_and_records_structure(tmp_path, monkeypatch):
+    # A made-up asset folder (a lid with a flap riding on it) and a stand-in trainer that
+    # finds one hinge: checks the loop, the nested-joint scenes and the structure columns.
+    import gear.bench.accuracy as accuracy
+    import gear.evaluate as eval_cmd
+    import gear.train as train_mod
+
+    asset = tmp_path / "assets" / "lidbox_1"
+    asset.mkdir(parents=True)
+    (asset / "mobility.urdf").write_text(SUITE_URDF)
+
+    def fake_train(scene_dir, out_dir, config, overwrite=False, quiet=False):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "joints.json").write_text(json.dumps({"joints": [{"type": "revolute"}]}))
+        return train_mod.TrainResult([], "start", {"stage1": 2.0})
+
+    monkeypatch.setattr(train_mod, "train", fake_train)
+    monkeypatch.setattr(eval_cmd, "evaluate", lambda out_dir, scene_dir: {"axis_ang": 1.0})
+    monkeypatch.setattr(accuracy, "machine_description", lambda: "test machine")
+    out = tmp_path / "real"
+    code = main(["bench", "accuracy", "--suite", "real", "--assets", str(tmp_path / "assets"),
+                 "--profile", "quick", "--res", "24", "--views", "2", "--test-views", "0",
+                 "--out", str(out)])
+    assert code == 0
+    back = read_csv(out / "accuracy.csv")
+    # One scene per nested joint, the other joint held at rest; each has one moving part.
+    assert [r.scene for r in back] == ["lidbox-hinge", "lidbox-flap_hinge"]
+    assert all((r.parts_true, r.parts_found, r.types_true, r.types_found) ==
+               (2, 2, "1R", "1R") for r in back)
+    scene = load_scene(out / "accuracy_runs" / "scenes" / "lidbox-hinge-r24-v2")
+    assert len(scene.gt.joints) == 1 and scene.gt.joints[0].amount < 0  # towards -1.5
+    assert "| lidbox-hinge | quick | 2 / 2 | 1R / 1R |" in (out / "accuracy.md").read_text()

@@ -1,24 +1,17 @@
 """URDF import: a small URDF written here, and the real PartNet-Mobility assets (skipped when
-/work/shared/assets is absent)."""
-
-import os
-from pathlib import Path
+they are absent; see gear.bench.accuracy.real.assets_dir for where they are looked for)."""
 
 import numpy as np
 import pytest
 from PIL import Image
 
+from gear.bench.accuracy.real import assets_dir
 from gear.cli import main
 from gear.data import load_scene, validate_scene
 from gear.synth import render_scene
 from gear.synth.urdf import load_urdf
 
-ASSETS = Path(
-    os.environ.get(
-        "GEAR_PARTNET_ASSETS",
-        Path(__file__).resolve().parents[2] / "shared" / "assets" / "partnet-mobility",
-    )
-)
+ASSETS = assets_dir()
 REAL = {  # folder -> moving parts with the default states (limits lower -> upper)
     "cabinet_upper_46108": 4,
     "kitchen_counter_26608": 8,

@@ -29,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--test-views", type=int, default=16, help="test views per state (default 16)")
     p.add_argument("--seed", type=int, default=0, help="cameras, colours and effects seed")
     p.add_argument("--effects", default="", help="comma-separated effects (see --list)")
+    p.add_argument("--up", default=None, help="world up axis: +x/-x/+y/-y/+z/-z or x,y,z "
+                   "(default +z; the whole world is rotated, the images stay the same)")
     p.set_defaults(handler=run)
 
 
@@ -78,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         obj, meta = build(args.object, args.seed), None
     out = render_scene(
-        obj, args.out, args.res, args.views, args.test_views, args.seed, effects, meta
+        obj, args.out, args.res, args.views, args.test_views, args.seed, effects, meta, args.up
     )
     print(
         f"wrote {out} ({obj.name}: {len(obj.parts)} moving part(s), {args.res}x{args.res}, "

@@ -3,7 +3,7 @@ one joint attached to the static body, with geometry given at joint value 0."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import trimesh
@@ -67,6 +67,10 @@ class Joint:
             self.type, self.origin, self.axis, (self.end - self.start) * scale, self.start * scale
         )
 
+    def transformed(self, rotation: np.ndarray) -> Joint:
+        """The same joint in a world rotated by `rotation` (3x3) about the origin."""
+        return replace(self, origin=rotation @ self.origin, axis=rotation @ self.axis)
+
     def pose(self, value: float) -> np.ndarray:
         """4x4 transform of the part at joint `value` (from its geometry at value 0)."""
         scale = 180.0 / np.pi if self.type == "revolute" else 1.0
@@ -93,6 +97,18 @@ class Articulated:
             pose = part.joint.pose(value)
             out.append([s.transformed(pose) for s in part.surfaces])
         return out
+
+    def rotated(self, rotation: np.ndarray) -> Articulated:
+        """The object in a world rotated by `rotation` (3x3) about the origin: geometry and
+        joints alike, so every pose is the rotated pose."""
+        matrix = np.eye(4)
+        matrix[:3, :3] = rotation
+        return Articulated(
+            self.name,
+            [s.transformed(matrix) for s in self.static],
+            [Part(p.joint.transformed(rotation), [s.transformed(matrix) for s in p.surfaces])
+             for p in self.parts],
+        )
 
     def gt_meshes(self, state: str) -> dict[str, trimesh.Trimesh]:
         """GT meshes of `state`: "whole", "static", "part_i" (docs/scenes.md names)."""

@@ -112,6 +112,10 @@ class SolidTexture:
         cycles = np.array([3.0, 5.0, 8.0, 13.0, 21.0]) / max(size, 1e-6)
         return cls(dirs * cycles[:, None] * 2 * np.pi, rng.uniform(0, 2 * np.pi, 5))
 
+    def rotated(self, rotation: np.ndarray) -> SolidTexture:
+        """The same pattern on an object rotated by `rotation` (3x3), so it moves along."""
+        return SolidTexture(self.waves @ rotation.T, self.phases)
+
     def __call__(self, points: np.ndarray) -> np.ndarray:
         return np.sin(points @ self.waves.T + self.phases).mean(axis=1)
 
@@ -125,7 +129,13 @@ class Rendered:
     facets: np.ndarray  # [H,W] int64 facet key, -1 = background
 
 
-def render(packed: Packed, camera: Camera, solid: SolidTexture, specular: bool = False) -> Rendered:
+def render(
+    packed: Packed,
+    camera: Camera,
+    solid: SolidTexture,
+    specular: bool = False,
+    light_dir: np.ndarray = LIGHT_DIR,
+) -> Rendered:
     frags = rasterize(packed.vertices, packed.faces, camera)
     hit = frags.face >= 0
     face = frags.face[hit]
@@ -144,10 +154,10 @@ def render(packed: Packed, camera: Camera, solid: SolidTexture, specular: bool =
     to_eye = camera.center[None, :] - world
     to_eye /= np.linalg.norm(to_eye, axis=1, keepdims=True)
     normal = np.where((np.sum(normal * to_eye, axis=1) < 0)[:, None], -normal, normal)  # two-sided
-    shade = AMBIENT + DIFFUSE * np.clip(normal @ LIGHT_DIR, 0.0, None)
+    shade = AMBIENT + DIFFUSE * np.clip(normal @ light_dir, 0.0, None)
     color = albedo * shade[:, None]
     if specular:
-        half = to_eye + LIGHT_DIR
+        half = to_eye + light_dir
         half /= np.linalg.norm(half, axis=1, keepdims=True)
         color += SPECULAR * np.clip(np.sum(normal * half, axis=1), 0.0, None)[:, None] ** SHININESS
 

@@ -9,7 +9,9 @@ Budgets: a profile name (quick, fast, full), an iteration count N, meaning the f
 schedule rescaled to N stage-1 + N stage-3 iterations the way `fast` rescales it to 10k + 10k,
 or PROFILE:N, that profile's schedule rescaled the same way (e.g. quick:600).
 Scenes: built-in object names (generated once into the work folder with `gear synth` settings
-given here) or paths to existing scene folders.
+given here) or paths to existing scene folders. `--suite real` runs the real-asset suite
+instead (PartNet-Mobility objects under real-capture conditions, `gear.bench.accuracy.real`),
+trained with automatic K, with a per-object table of the structure found.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ from gear.bench.accuracy.records import (
     Run,
     markdown_table,
     read_csv,
+    suite_table,
+    type_counts,
     write_csv,
     write_results,
 )
@@ -45,19 +49,32 @@ _SCALED_FIELDS = ("densify_until", "stage3_densify_until", "joint_classify_itera
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenes", default="fridge,drawer_cabinet,storage7",
                         help="comma-separated built-in object names or scene folders")
-    parser.add_argument("--profiles", default="quick,2000,fast",
+    parser.add_argument("--profiles", "--profile", default=None,
                         help="comma-separated budgets: quick|fast|full, an iteration count N "
-                        "(full rescaled) or PROFILE:N")
+                        "(full rescaled) or PROFILE:N (default quick,2000,fast; quick with "
+                        "--suite)")
+    parser.add_argument("--suite", choices=["real"], default=None,
+                        help="real: the PartNet-Mobility objects rendered as a real capture "
+                        "(+y up, other cameras per state, textures, highlights) instead of "
+                        "--scenes")
+    parser.add_argument("--objects", default="",
+                        help="with --suite: comma-separated object names (default: all)")
+    parser.add_argument("--assets", type=Path, default=None,
+                        help="with --suite real: the PartNet-Mobility folder (default "
+                        "$GEAR_PARTNET_ASSETS, else ../shared/assets/partnet-mobility next to "
+                        "the repository)")
     parser.add_argument("--ablation", action="store_true",
                         help="instead of budgets: EM vs joint optimisation, EM interval "
                         f"{'/'.join(map(str, EM_INTERVALS))} (of a 30k-iteration stage 3, "
                         "scaled to the budget's), clean vs flawed masks, all at the first budget")
     parser.add_argument("--res", type=int, default=128, help="generated scenes' resolution")
-    parser.add_argument("--views", type=int, default=48, help="generated training views/state")
+    parser.add_argument("--views", type=int, default=None,
+                        help="generated training views/state (default 48; 32 with --suite)")
     parser.add_argument("--test-views", type=int, default=8, help="generated test views/state")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path("bench"),
-                        help="folder for accuracy.csv/.md/.png (default ./bench)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="folder for accuracy.csv/.md/.png (default ./bench, ./bench/real "
+                        "with --suite real)")
     parser.add_argument("--append", action="store_true",
                         help="keep the runs already in OUT/accuracy.csv and skip those that "
                         "finished ok (extend or resume a long benchmark)")
@@ -152,24 +169,86 @@ def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: d
         return record
     record.metrics = {key: metrics.get(key) for key, _, _ in METRICS}
     record.type_mismatches = int(metrics.get("type_mismatches") or 0)
+    record_structure(record, Path(out_dir), Path(scene_dir))
     return record
 
 
+def record_structure(record: Run, out_dir: Path, scene_dir: Path) -> None:
+    """Part count K (static included) and joint types, found (joints.json) and true
+    (gt/trans.json), when those files exist."""
+    gt = scene_dir / "gt" / "trans.json"
+    if gt.is_file():
+        types = [j["type"] for j in json.loads(gt.read_text())["trans_info"]]
+        record.parts_true, record.types_true = 1 + len(types), type_counts(types)
+    found = out_dir / "joints.json"
+    if found.is_file():
+        types = [j["type"] for j in json.loads(found.read_text())["joints"]]
+        record.parts_found, record.types_found = 1 + len(types), type_counts(types)
+
+
+def _resolve_defaults(args: argparse.Namespace) -> None:
+    """Defaults that depend on --suite."""
+    suite = args.suite is not None
+    if args.profiles is None:
+        args.profiles = "quick" if suite else "quick,2000,fast"
+    if args.views is None:
+        args.views = 32 if suite else 48
+    if args.out is None:
+        args.out = Path("bench") / args.suite if suite else Path("bench")
+    if args.objects and not suite:
+        raise ValueError("--objects selects objects of a --suite; use --scenes otherwise")
+    if suite and args.ablation:
+        raise ValueError("--ablation runs on --scenes (built-in objects), not on a --suite")
+
+
+def _suite_scenes(args: argparse.Namespace, work: Path) -> list[tuple[str, Any]]:
+    """(name, callable(effects) giving the rendered scene folder) per suite object."""
+    from gear.bench.accuracy import real
+
+    assets = real.assets_dir(args.assets)
+    if not assets.is_dir():
+        raise ValueError(f"{assets}: PartNet-Mobility assets not found (give --assets or set "
+                         f"${real.ASSETS_ENV})")
+    chosen = real.select(real.real_scenes(assets, args.seed), args.objects)
+
+    def renderer(scene: real.RealScene) -> Any:
+        def render(effects: tuple[str, ...]) -> Path:  # the suite fixes its own effects
+            path = work / "scenes" / f"{scene.name}-r{args.res}-v{args.views}"
+            if not (path / "transforms_train_start.json").is_file():
+                real.render_real(scene, assets, path, args.res, args.views, args.test_views,
+                                 args.seed)
+            return path
+        return render
+
+    return [(s.name, renderer(s)) for s in chosen]
+
+
+def _named_scenes(args: argparse.Namespace, work: Path) -> list[tuple[str, Any]]:
+    """(name, callable(effects) giving the scene folder) per --scenes entry."""
+
+    def finder(scene: str) -> Any:
+        return lambda effects: _scene_dir(scene, effects, work, args)
+
+    return [(Path(s).name, finder(s)) for s in args.scenes.split(",") if s]
+
+
 def run(args: argparse.Namespace) -> int:
-    scenes = [s for s in args.scenes.split(",") if s]
+    _resolve_defaults(args)
     budgets = [b for b in args.profiles.split(",") if b]
     for b in budgets:
         budget_config(b)  # reject a bad token before any training starts
     if args.ablation:
         budgets = budgets[:1]
     work = args.work or args.out / "accuracy_runs"
+    suite = args.suite is not None
+    scenes = _suite_scenes(args, work) if suite else _named_scenes(args, work)
     machine = machine_description()
     previous = args.out / "accuracy.csv"
     records = read_csv(previous) if args.append and previous.is_file() else []
     finished = {(r.scene, r.budget, r.variant) for r in records if r.status == "ok"}
+    table = suite_table if suite else markdown_table
     records = [r for r in records if (r.scene, r.budget, r.variant) in finished]
-    for scene in scenes:
-        name = Path(scene).name
+    for name, scene_dir_of in scenes:
         for budget in budgets:
             for variant, overrides, effects in variants(args.ablation):
                 print(f"[{name} / {budget} / {variant}] ", end="", flush=True)
@@ -177,7 +256,7 @@ def run(args: argparse.Namespace) -> int:
                     print("already in the table", flush=True)
                     continue
                 try:
-                    scene_dir = _scene_dir(scene, effects, work, args)
+                    scene_dir = scene_dir_of(effects)
                 except ValueError as err:
                     record = Run(name, budget, variant, status=f"skipped: {err}")
                 else:
@@ -189,9 +268,9 @@ def run(args: argparse.Namespace) -> int:
                 # Table and CSV after every run, so a long benchmark can be read as it goes.
                 args.out.mkdir(parents=True, exist_ok=True)
                 write_csv(records, args.out / "accuracy.csv")
-                (args.out / "accuracy.md").write_text(markdown_table(records, machine))
-    write_results(records, args.out, machine)
-    print(markdown_table(records, machine))
+                (args.out / "accuracy.md").write_text(table(records, machine))
+    write_results(records, args.out, machine, suite=suite)
+    print(table(records, machine))
     return 1 if any(r.status.startswith("failed") for r in records) else 0
 
 

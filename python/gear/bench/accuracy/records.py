@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,11 @@ class Run:
     metrics: dict[str, float | None] = field(default_factory=dict)
     type_mismatches: int = 0
     status: str = "ok"
+    # Structure found vs true: part count K (static included) and joint types ("2R+1P").
+    parts_true: int | None = None
+    parts_found: int | None = None
+    types_true: str = ""
+    types_found: str = ""
 
     @property
     def total_seconds(self) -> float:
@@ -49,6 +54,8 @@ class Run:
         out.update({f"time_{k}_s": round(v, 2) for k, v in sorted(self.timings.items())})
         out.update({key: self.metrics.get(key) for key, _, _ in METRICS})
         out["type_mismatches"] = self.type_mismatches
+        out.update({"parts_true": self.parts_true, "parts_found": self.parts_found,
+                    "types_true": self.types_true, "types_found": self.types_found})
         out["status"] = self.status
         return out
 
@@ -81,8 +88,23 @@ def read_csv(path: Path) -> list[Run]:
             row["scene"], row["budget"], row["variant"], int(row["iterations"] or 0), timings,
             {key: number(row.get(key)) for key, _, _ in METRICS},
             int(row["type_mismatches"] or 0), row["status"],
+            _integer(row.get("parts_true")), _integer(row.get("parts_found")),
+            row.get("types_true") or "", row.get("types_found") or "",
         ))
     return records
+
+
+def _integer(text: str | None) -> int | None:
+    return int(float(text)) if text else None
+
+
+def type_counts(types: Sequence[str]) -> str:
+    """["revolute", "prismatic", "revolute"] -> "2R+1P" (order-free, so found and true compare
+    as text); "-" for no joints."""
+    revolute = sum(t in ("revolute", "rotate") for t in types)
+    prismatic = sum(t in ("prismatic", "translate") for t in types)
+    parts = [f"{n}{letter}" for n, letter in ((revolute, "R"), (prismatic, "P")) if n]
+    return "+".join(parts) or "-"
 
 
 def _cell(value: float | None) -> str:
@@ -106,6 +128,26 @@ def markdown_table(records: Sequence[Run], machine: str) -> str:
         else:
             cells += [r.status.replace("|", "/")] + [""] * (len(METRICS) - 1)
         cells.append(str(r.type_mismatches))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def suite_table(records: Sequence[Run], machine: str) -> str:
+    """The real-asset suite's table: one row per object and budget, structure found vs true,
+    the joint and part errors and the wall time."""
+    header = ["object", "budget", "K found / true", "types found / true", "Axis Ang (deg)",
+              "Axis Pos (x10)", "Geo Dist rev (deg)", "Geo Dist pri", "CD-m", "Part IoU",
+              "wall (s)", "status"]
+    lines = [f"Machine: {machine}", "", "| " + " | ".join(header) + " |",
+             "|" + "---|" * len(header)]
+    for r in records:
+        found = "-" if r.parts_found is None else str(r.parts_found)
+        true = "-" if r.parts_true is None else str(r.parts_true)
+        cells = [r.scene, r.budget, f"{found} / {true}",
+                 f"{r.types_found or '-'} / {r.types_true or '-'}"]
+        cells += [_cell(r.metrics.get(key)) for key in
+                  ("axis_ang", "axis_pos", "geo_dist_deg", "geo_dist_m", "cd_m", "part_iou")]
+        cells += [_cell(r.total_seconds) if r.timings else "-", r.status.replace("|", "/")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -170,6 +212,14 @@ def _legend_below(fig, handles: list) -> None:  # noqa: ANN001 (a matplotlib Fig
 def plot_ablation(records: Sequence[Run], path: Path) -> None:
     """Ablation runs share a budget, so time is no axis: one panel per metric (and one for the
     wall time), the variants along x, one bar per scene."""
+    plot_bars(records, path, along=lambda r: r.variant, bars=lambda r: r.scene)
+
+
+def plot_bars(records: Sequence[Run], path: Path, along: Callable[[Run], str],
+              bars: Callable[[Run], str]) -> None:
+    """One panel per metric (and one for the wall time); runs grouped along x by `along`, one
+    bar colour per value of `bars` (ablation: variants x scenes; real suite: objects x
+    budgets)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -177,26 +227,26 @@ def plot_ablation(records: Sequence[Run], path: Path) -> None:
     import numpy as np
 
     ok = [r for r in records if r.status == "ok"]
-    variants_seen = list(dict.fromkeys(r.variant for r in ok))
-    scenes = list(dict.fromkeys(r.scene for r in ok))
-    value = {(r.scene, r.variant): r for r in ok}
+    groups = list(dict.fromkeys(along(r) for r in ok))
+    series = list(dict.fromkeys(bars(r) for r in ok))
+    value = {(bars(r), along(r)): r for r in ok}
     panels = [("__time", "total time (s)", False), *METRICS]
     cols = 3
     rows = math.ceil(len(panels) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(5.0 * cols, 3.0 * rows), squeeze=False)
-    width = 0.8 / max(1, len(scenes))
-    x = np.arange(len(variants_seen))
+    width = 0.8 / max(1, len(series))
+    x = np.arange(len(groups))
     for ax, (key, label, log_y) in zip(axes.flat, panels, strict=False):
         drawn = False
-        for i, scene in enumerate(scenes):
+        for i, bar in enumerate(series):
             heights = []
-            for variant in variants_seen:
-                run = value.get((scene, variant))
+            for group in groups:
+                run = value.get((bar, group))
                 v = None if run is None else (
                     run.total_seconds if key == "__time" else run.metrics.get(key))
                 heights.append(np.nan if v is None else v)
             if not np.all(np.isnan(heights)):
-                ax.bar(x + (i - (len(scenes) - 1) / 2) * width, heights, width,
+                ax.bar(x + (i - (len(series) - 1) / 2) * width, heights, width,
                        color=f"C{i % 10}")
                 drawn = True
         if log_y and drawn:
@@ -204,24 +254,28 @@ def plot_ablation(records: Sequence[Run], path: Path) -> None:
         if not drawn:
             ax.text(0.5, 0.5, "not computed", ha="center", va="center", transform=ax.transAxes)
         ax.set_title(label)
-        ax.set_xticks(x, variants_seen, rotation=45, ha="right", fontsize=7)
+        ax.set_xticks(x, groups, rotation=45, ha="right", fontsize=7)
         ax.grid(True, axis="y", which="both", alpha=0.3)
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
     handles = [plt.Rectangle((0, 0), 1, 1, color=f"C{i % 10}", label=s)
-               for i, s in enumerate(scenes)]
+               for i, s in enumerate(series)]
     _legend_below(fig, handles)
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
-def write_results(records: Sequence[Run], out: Path, machine: str) -> dict[str, Path]:
-    """accuracy.csv, accuracy.md and accuracy.png in `out`; returns their paths."""
+def write_results(records: Sequence[Run], out: Path, machine: str,
+                  suite: bool = False) -> dict[str, Path]:
+    """accuracy.csv, accuracy.md and accuracy.png in `out`; returns their paths. A suite's
+    table has one row per object and its plot one bar group per object."""
     out.mkdir(parents=True, exist_ok=True)
     paths = {"csv": out / "accuracy.csv", "md": out / "accuracy.md", "png": out / "accuracy.png"}
     write_csv(records, paths["csv"])
-    paths["md"].write_text(markdown_table(records, machine))
-    if any(r.variant != "default" for r in records):
+    paths["md"].write_text((suite_table if suite else markdown_table)(records, machine))
+    if suite:
+        plot_bars(records, paths["png"], along=lambda r: r.scene, bars=lambda r: r.budget)
+    elif any(r.variant != "default" for r in records):
         plot_ablation(records, paths["png"])
     else:
         plot(records, paths["png"])
