@@ -34,7 +34,8 @@ class RunFolderError(ValueError):
     """The output folder cannot be used for this run (one line, for the CLI)."""
 
 
-def _writable_folder(out_dir: Path) -> None:
+def writable_folder(out_dir: Path) -> None:
+    """Creates `out_dir` if needed; a one-line RunFolderError when it cannot hold outputs."""
     if out_dir.exists() and not out_dir.is_dir():
         raise RunFolderError(f"--out {out_dir}: is a file, not a folder")
     try:
@@ -65,7 +66,7 @@ class RunFolder:
         if resume and overwrite:
             raise RunFolderError("--resume and --overwrite exclude each other")
         out_dir = Path(out_dir)
-        _writable_folder(out_dir)
+        writable_folder(out_dir)
         fd, notes = cls._lock(out_dir)
         folder = cls(out_dir, fd, notes)
         try:
