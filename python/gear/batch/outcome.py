@@ -11,6 +11,9 @@ from gear.run_folder import write_atomic
 
 RECORD = "batch.json"
 DONE, INVALID, FAILED = "done", "invalid", "failed"
+# RUNS/.attempts/<scene>.log: a line per attempt started. Kept beside the run folders, not in
+# them, so the run-folder machinery (which clears a run folder it replaces) never touches it.
+ATTEMPTS = ".attempts"
 
 
 @dataclass
@@ -25,6 +28,7 @@ class Outcome:
     error: str = ""
     resumed: str = ""  # where the attempts continued from a checkpoint, when they did
     peak_mb: float | None = None  # the task's peak resident memory
+    attempts: int = 0  # attempts started on this scene (across `--resume`d batches)
     notes: list[str] = field(default_factory=list)
     fingerprint: dict[str, list[int]] | None = None  # scene files, when invalid
 
@@ -40,3 +44,26 @@ class Outcome:
             return cls(**json.loads((run_dir / RECORD).read_text()))
         except (OSError, ValueError, TypeError):
             return None
+
+
+def _attempt_log(run_dir: Path) -> Path:
+    return run_dir.parent / ATTEMPTS / f"{run_dir.name}.log"
+
+
+def record_attempt(run_dir: Path, who: str) -> int:
+    """Notes an attempt starting on `run_dir`'s scene; returns how many have started."""
+    path = _attempt_log(run_dir)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a") as fh:  # one short append per attempt: lines never interleave
+        fh.write(who + "\n")
+    return count_attempts(run_dir)
+
+
+def count_attempts(run_dir: Path) -> int:
+    path = _attempt_log(run_dir)
+    return len(path.read_text().splitlines()) if path.is_file() else 0
+
+
+def forget_attempts(run_dir: Path) -> None:
+    """A new batch on this scene counts from zero."""
+    _attempt_log(run_dir).unlink(missing_ok=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from gear.batch.outcome import DONE, INVALID, Outcome
+from gear.batch.outcome import DONE, INVALID, Outcome, forget_attempts
 from gear.batch.scenes import BatchError, BatchScene, files_fingerprint, list_scenes
 from gear.run_folder import COMPLETE, writable_folder
 
@@ -48,6 +48,9 @@ def plan_batch(spec: Path, runs: Path, *, resume: bool) -> Plan:
         shown = ", ".join(busy[:3]) + (f" and {len(busy) - 3} more" if len(busy) > 3 else "")
         raise BatchError(f"--out {runs}: already holds runs of {shown}; continue that batch with "
                          "--resume, or choose another folder")
+    if not resume:
+        for scene in todo:
+            forget_attempts(runs / scene.name)
     return Plan(todo, settled)
 
 

@@ -22,6 +22,8 @@ def describe(outcome: Outcome) -> str:
             parts.append(f"{label} {value:.3g}")
     if outcome.resumed:
         parts.append(f"resumed from {outcome.resumed}")
+    if outcome.attempts > 1:
+        parts.append(f"{outcome.attempts} attempts")
     return f"{head}: " + ", ".join(parts)
 
 
@@ -32,9 +34,13 @@ class BatchProgress:
         self.quiet = quiet
         self._bar = tqdm(total=total, desc="batch", unit="scene", disable=quiet)
         self._done = self._failed = 0
+        self._shown = ""
 
     def update(self, running: int) -> None:
-        self._bar.set_postfix_str(f"done {self._done}, running {running}, failed {self._failed}")
+        counts = f"done {self._done}, running {running}, failed {self._failed}"
+        if counts != self._shown:  # redraw on change only: a quiet log when output is a file
+            self._shown = counts
+            self._bar.set_postfix_str(counts)
 
     def finished(self, outcome: Outcome, running: int) -> None:
         if outcome.status == DONE:

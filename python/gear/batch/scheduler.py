@@ -11,7 +11,7 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
-from gear.batch.outcome import FAILED, Outcome
+from gear.batch.outcome import FAILED, Outcome, count_attempts
 from gear.batch.progress import BatchProgress
 from gear.batch.scenes import BatchError, BatchScene
 from gear.batch.task import run_scene, thread_env
@@ -52,7 +52,7 @@ def run_scenes(scenes: list[BatchScene], runs: Path, config_json: str,
             retry_exceptions=True, runtime_env={"env_vars": thread_env(cpus)})
         pending = {task.remote(scene, str(runs / scene.name), config_json, export_options): scene
                    for scene in scenes}
-        _collect(ray, pending, slots, progress, settled)
+        _collect(ray, pending, runs, slots, progress, settled)
     finally:
         if started:
             ray.shutdown()
@@ -71,8 +71,8 @@ def _slots(resources: dict, cpus: int, memory_gb: float) -> int:
     return max(1, min(int(total_cpus // cpus), int(total_gb // memory_gb)))
 
 
-def _collect(ray, pending: dict, slots: int, progress: BatchProgress,  # noqa: ANN001 (module)
-             settled: Callable[[Outcome], None]) -> None:
+def _collect(ray, pending: dict, runs: Path, slots: int,  # noqa: ANN001 (Ray module)
+             progress: BatchProgress, settled: Callable[[Outcome], None]) -> None:
     try:
         while pending:
             # Tasks beyond the cluster's slots wait in Ray's queue: "running" counts the others.
@@ -81,6 +81,7 @@ def _collect(ray, pending: dict, slots: int, progress: BatchProgress,  # noqa: A
             for ref in ready:
                 scene = pending.pop(ref)
                 outcome = _result(ray, ref, scene)
+                outcome.attempts = outcome.attempts or count_attempts(runs / scene.name)
                 settled(outcome)
                 progress.finished(outcome, min(len(pending), slots))
     except KeyboardInterrupt:

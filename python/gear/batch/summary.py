@@ -37,13 +37,14 @@ def _csv(outcomes: list[Outcome], means: dict[str, float | None]) -> str:
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(["scene", "status", "wall_s", "joints", *(k for k, _ in SUMMARY), "peak_mb",
-                     "resumed_from", "error"])
+                     "attempts", "resumed_from", "error"])
     for o in outcomes:
         writer.writerow([o.scene, o.status, f"{o.seconds:.1f}", _blank(o.joints),
                          *(_blank(o.metrics.get(k)) for k, _ in SUMMARY),
-                         _blank(None if o.peak_mb is None else round(o.peak_mb)), o.resumed,
-                         o.error])
-    writer.writerow(["mean", "", "", "", *(_blank(means[k]) for k, _ in SUMMARY), "", "", ""])
+                         _blank(None if o.peak_mb is None else round(o.peak_mb)), o.attempts,
+                         o.resumed, o.error])
+    writer.writerow(["mean", "", "", "", *(_blank(means[k]) for k, _ in SUMMARY), "", "", "",
+                     ""])
     return out.getvalue()
 
 
@@ -66,7 +67,7 @@ def _markdown(outcomes: list[Outcome], means: dict[str, float | None]) -> str:
     resumed = [o for o in outcomes if o.resumed]
     if resumed:
         text += ["", "## Resumed from checkpoints", ""]
-        text += [f"- {o.scene}: {o.resumed}" for o in resumed]
+        text += [f"- {o.scene}: {o.resumed} ({o.attempts} attempts)" for o in resumed]
     return "\n".join(text) + "\n"
 
 

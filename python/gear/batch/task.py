@@ -9,11 +9,13 @@ raises, and Ray retries the task, whose next attempt continues from the run's la
 from __future__ import annotations
 
 import json
+import os
 import resource
+import socket
 import time
 from pathlib import Path
 
-from gear.batch.outcome import DONE, INVALID, Outcome
+from gear.batch.outcome import DONE, INVALID, Outcome, record_attempt
 from gear.batch.scenes import BatchScene, files_fingerprint
 from gear.checkpoint import LAST
 from gear.cli import UserError
@@ -41,6 +43,8 @@ def run_scene(scene: BatchScene, run_dir: str, config_json: str,
     """The whole pipeline on `scene` into `run_dir`; raises on a crash (for Ray to retry)."""
     run = Path(run_dir)
     t0 = time.perf_counter()
+    attempts = record_attempt(run, f"pid {os.getpid()} on {socket.gethostname()} at "
+                                   f"{time.strftime('%Y-%m-%d %H:%M:%S %Z')}")
     try:
         notes = _train(scene, run, TrainConfig(**json.loads(config_json)))
     except VALIDATION_ERRORS as err:
@@ -52,6 +56,7 @@ def run_scene(scene: BatchScene, run_dir: str, config_json: str,
         outcome = Outcome(scene.name, DONE, joints=len(joints), metrics=_evaluate(run, scene),
                           resumed=_resumed(run), notes=notes)
     outcome.seconds = time.perf_counter() - t0
+    outcome.attempts = attempts
     outcome.peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
     return outcome
 
