@@ -13,6 +13,7 @@ import logging
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -164,10 +165,10 @@ def test_a_killed_worker_is_retried_and_the_retry_resumes(local_ray, scenes, tmp
         killed = None
         deadline = time.monotonic() + 300
         while killed is None and proc.poll() is None and time.monotonic() < deadline:
-            if (run / "checkpoints" / "last.pt").is_file() and (run / LOCK).is_file():
-                holder = json.loads((run / LOCK).read_text() or "{}")
-                if holder.get("pid"):
-                    killed = holder["pid"]
+            if (run / "checkpoints" / "last.pt").is_file():
+                holder = _lock_holder(run)
+                if holder is not None:
+                    killed = holder
                     os.kill(killed, signal.SIGKILL)  # the worker dies mid-run, as on OOM
             time.sleep(0.05)
         assert killed is not None, "the run never reached a checkpoint"
@@ -185,6 +186,14 @@ def test_a_killed_worker_is_retried_and_the_retry_resumes(local_ray, scenes, tmp
     assert "fridge: done in " in out and "2 attempts" in out
 
 
+def _lock_holder(run: Path) -> int | None:
+    """The PID in the run's lock file; None while there is none (or it is being written)."""
+    try:
+        return json.loads((run / LOCK).read_text()).get("pid")
+    except (OSError, ValueError):
+        return None
+
+
 def test_without_ray_the_command_says_how_to_install_it(scenes, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     code = main(["batch", str(scenes), "--out", str(tmp_path / "runs")])
@@ -193,6 +202,20 @@ def test_without_ray_the_command_says_how_to_install_it(scenes, tmp_path, monkey
     assert err == ("gear: error: gear batch needs Ray: pip install 'gear-twin[batch]' "
                    "(or pip install ray)")
     assert not (tmp_path / "runs").exists()
+
+
+def test_an_address_where_no_cluster_answers_is_one_line(scenes, tmp_path):
+    with socket.socket() as free:  # a port nothing listens on
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    # In its own process: this one may be joined to the test's Ray already.
+    proc = subprocess.run([sys.executable, "-m", "gear", "batch", str(scenes), "--out",
+                           str(tmp_path / "runs"), "--address", f"127.0.0.1:{port}", "--quiet"],
+                          capture_output=True, text=True, timeout=300)
+    err = proc.stderr.strip()
+    assert proc.returncode == 1
+    assert err.startswith(f"gear: error: --address 127.0.0.1:{port}: no Ray cluster answers "
+                          "there (Connection refused)") and "\n" not in err
 
 
 def test_a_new_batch_over_an_earlier_ones_runs_is_refused(first_batch, scenes, capsys):

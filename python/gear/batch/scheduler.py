@@ -8,6 +8,7 @@ Ray is imported here only: it is an optional extra (`pip install gear-twin[batch
 from __future__ import annotations
 
 import logging
+import socket
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from gear.export.assembly import ExportOptions
 
 INSTALL_HINT = "gear batch needs Ray: pip install 'gear-twin[batch]' (or pip install ray)"
 CANCEL_GRACE_S = 60  # after Ctrl-C, how long running tasks get to save their checkpoints
+PROBE_S = 5  # how long a cluster address gets to answer before Ray is asked to join it
 POLL_S = 1.0
 
 
@@ -41,6 +43,8 @@ def run_scenes(scenes: list[BatchScene], runs: Path, config_json: str,
 
     started = not ray.is_initialized()
     if started:
+        if address is not None:
+            _probe(address)
         ray.init(address=address, include_dashboard=False, log_to_driver=False,
                  logging_level=logging.WARNING)
     try:
@@ -56,6 +60,19 @@ def run_scenes(scenes: list[BatchScene], runs: Path, config_json: str,
     finally:
         if started:
             ray.shutdown()
+
+
+def _probe(address: str) -> None:
+    """A HOST:PORT (or ray://HOST:PORT) address that nothing answers on is one line now, not
+    minutes of Ray retrying to connect."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit():
+        return  # "auto", or a form Ray resolves itself
+    try:
+        socket.create_connection((host, int(port)), timeout=PROBE_S).close()
+    except OSError as err:
+        raise BatchError(f"--address {address}: no Ray cluster answers there "
+                         f"({err.strerror or err}); start one with `ray start --head`") from None
 
 
 def _slots(resources: dict, cpus: int, memory_gb: float) -> int:
