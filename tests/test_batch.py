@@ -232,6 +232,8 @@ def test_scene_lists_resolve_relative_paths_and_refuse_clashing_names(scenes, tm
     listing.write_text(f"\n# comment\n{scenes / 'fridge'}\n")
     assert [(s.name, s.path) for s in list_scenes(listing)] == [("fridge", scenes / "fridge")]
     (tmp_path / "a" / "fridge").mkdir(parents=True)
+    listing.write_text("a/fridge\n")  # relative to the list's folder, not to the working one
+    assert [s.path for s in list_scenes(listing)] == [tmp_path / "a" / "fridge"]
     listing.write_text(f"{scenes / 'fridge'}\na/fridge\n")
     with pytest.raises(BatchError, match="two scenes would share the run folder 'fridge'"):
         list_scenes(listing)

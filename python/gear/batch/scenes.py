@@ -40,6 +40,7 @@ def list_scenes(spec: Path) -> list[BatchScene]:
         raise BatchError(f"{spec}: no such folder or scene list")
     scenes: dict[str, BatchScene] = {}
     for path in paths:
+        path = path.absolute()  # workers may run in another folder (or on another machine)
         name = path.resolve().name
         if name in scenes:
             raise BatchError(f"two scenes would share the run folder {name!r} ({scenes[name].path}"

@@ -54,6 +54,7 @@ def run_scenes(scenes: list[BatchScene], runs: Path, config_json: str,
         task = ray.remote(max_calls=1)(run_scene).options(
             num_cpus=cpus, memory=int(memory_gb * 2**30), max_retries=retries,
             retry_exceptions=True, runtime_env={"env_vars": thread_env(cpus)})
+        runs = runs.absolute()  # the workers' working folder is not the driver's
         pending = {task.remote(scene, str(runs / scene.name), config_json, export_options): scene
                    for scene in scenes}
         _collect(ray, pending, runs, slots, progress, settled)
