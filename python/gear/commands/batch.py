@@ -69,21 +69,19 @@ def run(args: argparse.Namespace) -> int:
     print(plan.describe(args.cpus_per_run), flush=True)
 
     outcomes = {o.scene: o for o in plan.settled}
-    if plan.todo:
-        progress = BatchProgress(len(plan.todo), quiet=args.quiet)
 
-        def settled(outcome) -> None:  # noqa: ANN001 (Outcome)
-            outcome.save(args.out / outcome.scene)
-            outcomes[outcome.scene] = outcome
+    def settled(outcome) -> None:  # noqa: ANN001 (Outcome)
+        outcome.save(args.out / outcome.scene)
+        outcomes[outcome.scene] = outcome
 
-        try:
+    progress = BatchProgress(len(plan.todo), quiet=args.quiet or not plan.todo)
+    try:
+        if plan.todo:
             run_scenes(plan.todo, args.out, config.to_json(), options, address=args.address,
                        cpus=args.cpus_per_run, memory_gb=args.memory_per_run,
                        retries=args.retries, progress=progress, settled=settled)
-        finally:
-            progress.close()
-            write_summary(args.out, list(outcomes.values()))
-    else:
+    finally:  # also after Ctrl-C or a lost cluster: the scenes settled so far
+        progress.close()
         write_summary(args.out, list(outcomes.values()))
     done = sum(o.status == DONE for o in outcomes.values())
     means = metric_means(list(outcomes.values()))
