@@ -55,5 +55,5 @@ fi
 # 5. The Rust extension (gear._core) plus the package, editable, with the dev and colmap
 # extras. A venv made when the distribution was still called "gear" drops that name first.
 "$venv/bin/python" -m pip show -q gear 2>/dev/null && "$venv/bin/python" -m pip uninstall -q -y gear
-VIRTUAL_ENV="$PWD/$venv" "$venv/bin/maturin" develop --release --extras dev,colmap -q 2>&1 | grep -v -E "^(📦|🔗|🐍|⚠️ Warning: You|💻|🛠|📖|✏️|🎯)" || true
+VIRTUAL_ENV="$PWD/$venv" "$venv/bin/maturin" develop --release --extras dev,colmap,batch -q 2>&1 | grep -v -E "^(📦|🔗|🐍|⚠️ Warning: You|💻|🛠|📖|✏️|🎯)" || true
 "$venv/bin/python" -c "import gear._core" || { echo "setup: the extension did not build" >&2; exit 1; }

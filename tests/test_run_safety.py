@@ -93,6 +93,28 @@ def test_a_folder_holding_a_run_is_refused_without_resume_or_overwrite(tmp_path)
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
+def test_overwrite_also_removes_the_old_runs_export_metrics_and_renders(tmp_path):
+    out = tmp_path / "out"
+    for name in ("joints.json", COMPLETE, "metrics.json", "twin_renders/s0.000/0000.png",
+                 "urdf/export.json", "urdf/out.urdf", "mine/photo.jpg", "notes.txt"):
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_text("x")
+    with pytest.raises(RunFolderError, match="holds a finished run"):
+        RunFolder.open(out)
+    with RunFolder.open(out, overwrite=True):
+        pass
+    # The export folder (recognised by its manifest) goes with the run: a new run's files never
+    # sit beside the old run's URDF; folders and files gear did not write stay.
+    assert sorted(p.name for p in out.iterdir()) == ["mine", "notes.txt"]
+
+
+def test_a_folder_holding_only_an_export_counts_as_a_run_not_as_foreign_files(tmp_path):
+    (tmp_path / "urdf").mkdir()
+    (tmp_path / "urdf" / "export.json").write_text("{}")
+    with pytest.raises(RunFolderError, match="holds an unfinished run"):
+        RunFolder.open(tmp_path)
+
+
 def test_a_folder_of_other_files_is_refused(tmp_path):
     (tmp_path / "holiday.jpg").write_bytes(b"x")
     with pytest.raises(RunFolderError, match=r"not a gear run's \(holiday\.jpg\)"):
@@ -136,6 +158,23 @@ def test_a_failure_while_writing_outputs_leaves_an_unfinished_run_that_resumes(
     monkeypatch.undo()
     train(scene, tmp_path / "out", make_config("quick", CONFIG), resume=True, quiet=True)
     assert (tmp_path / "out" / COMPLETE).exists() and (tmp_path / "out" / "meshes").is_dir()
+
+
+def test_a_run_from_before_the_completion_marker_says_how_to_finish_it(scene, tmp_path,
+                                                                     capsys):
+    out = tmp_path / "old"
+    train(scene, out, make_config("quick", CONFIG), quiet=True)
+    joints = (out / "joints.json").read_bytes()
+    (out / COMPLETE).unlink()  # what a gear older than the marker left
+    hint = (f"has outputs but no {COMPLETE} (written by an older gear, or stopped while "
+            f"publishing them); `gear train SCENE --out {out} --resume` rewrites them")
+    code, err = run_cli(["eval", out, scene], capsys)
+    assert code == 1 and err.startswith(f"gear: error: {out}: {hint}") and "\n" not in err
+    code, err = run_cli(["train", scene, "--out", out, "--profile", "quick"], capsys)
+    assert code == 1 and err.startswith(f"gear: error: --out {out}: {hint}")
+    # The advice works: --resume rewrites the outputs from the final checkpoint, marks the run.
+    train(scene, out, make_config("quick", CONFIG), resume=True, quiet=True)
+    assert (out / COMPLETE).is_file() and (out / "joints.json").read_bytes() == joints
 
 
 # --- resume checks what it resumes -----------------------------------------------------------

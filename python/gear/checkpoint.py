@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gear.run_folder import RunFolderError
 from gear.splats import Gaussians
 
 LAST = "last.pt"
@@ -73,8 +74,9 @@ def _listed(names: list[str]) -> str:
 
 
 def check_resumable(saved: dict, scene: dict, config: dict) -> None:
-    """A one-line ValueError naming what differs between the checkpoint `saved` and this run's
-    scene fingerprint and resolved config (both as `scene_fingerprint` / JSON dicts)."""
+    """A one-line RunFolderError (a ValueError: the folder holds another run) naming what
+    differs between the checkpoint `saved` and this run's scene fingerprint and resolved
+    config (both as `scene_fingerprint` / JSON dicts)."""
     before = saved.get("scene")
     if before is not None:  # checkpoints written before fingerprints existed are not checked
         old, new = before["files"], scene["files"]
@@ -88,12 +90,12 @@ def check_resumable(saved: dict, scene: dict, config: dict) -> None:
         if before["cameras"] != scene["cameras"]:
             differences.append("the cameras differ")
         if differences:
-            raise ValueError("--resume: the checkpoint was made from another scene ("
+            raise RunFolderError("--resume: the checkpoint was made from another scene ("
                              + "; ".join(differences) + ")")
     saved_config = saved["config"]
     changed = [f"{name} {saved_config.get(name)!r} -> {value!r}" for name, value in config.items()
                if name in saved_config and saved_config[name] != value]
     if changed:
-        raise ValueError("--resume: the options differ from the saved run's ("
+        raise RunFolderError("--resume: the options differ from the saved run's ("
                          + ", ".join(changed) + "); resume without them or start over with "
                          "--overwrite")

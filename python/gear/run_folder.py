@@ -20,17 +20,22 @@ from pathlib import Path
 LOCK = ".gear.lock"
 COMPLETE = "complete.json"
 STAGING = ".outputs.partial"
-# Everything a run writes (besides the lock): what `--overwrite` removes, and what marks a
-# folder as holding a run.
+# Everything a run and the commands reading it write into its folder (besides the lock): what
+# `--overwrite` removes, and what marks a folder as holding a run. `metrics.json` comes from
+# `gear eval`, `twin_renders` from `gear render`, `batch.json` from `gear batch`; an export
+# folder inside the run folder is recognised by its manifest (`is_export`).
 RUN_ENTRIES = ("complete.json", "joints.json", "gaussians_canonical.ply", "parts.npy", "parts",
-               "renders", "meshes", "log.jsonl", "config.json", "checkpoints", STAGING)
+               "renders", "meshes", "log.jsonl", "config.json", "checkpoints", STAGING,
+               "metrics.json", "twin_renders", "batch.json")
+EXPORT_MANIFEST = "export.json"  # written last into every `gear export` folder
 
 
 class RunFolderError(ValueError):
     """The output folder cannot be used for this run (one line, for the CLI)."""
 
 
-def _writable_folder(out_dir: Path) -> None:
+def writable_folder(out_dir: Path) -> None:
+    """Creates `out_dir` if needed; a one-line RunFolderError when it cannot hold outputs."""
     if out_dir.exists() and not out_dir.is_dir():
         raise RunFolderError(f"--out {out_dir}: is a file, not a folder")
     try:
@@ -61,7 +66,7 @@ class RunFolder:
         if resume and overwrite:
             raise RunFolderError("--resume and --overwrite exclude each other")
         out_dir = Path(out_dir)
-        _writable_folder(out_dir)
+        writable_folder(out_dir)
         fd, notes = cls._lock(out_dir)
         folder = cls(out_dir, fd, notes)
         try:
@@ -105,18 +110,20 @@ class RunFolder:
 
     def _check_contents(self, resume: bool, overwrite: bool) -> None:
         entries = {p.name for p in self.path.iterdir()} - {LOCK}
-        held = entries & set(RUN_ENTRIES)
+        held = {name for name in entries if name in RUN_ENTRIES or is_export(self.path / name)}
         if resume:
             if COMPLETE in entries:
                 raise RunFolderError(f"--resume: the run in {self.path} is finished; nothing to "
                                      "resume (use --overwrite to start it over)")
             return
         if held and not overwrite:
+            if _predates_marker(self.path):
+                raise RunFolderError(f"--out {_predates_message(self.path)}")
             state = "a finished" if COMPLETE in entries else "an unfinished"
             raise RunFolderError(
                 f"--out {self.path}: holds {state} run; continue it with --resume, replace it "
                 "with --overwrite, or choose another folder")
-        foreign = entries - set(RUN_ENTRIES)
+        foreign = entries - held
         if foreign and not held:
             raise RunFolderError(
                 f"--out {self.path}: holds files that are not a gear run's "
@@ -171,11 +178,31 @@ def require_finished(out_dir: Path) -> Path:
         raise RunFolderError(f"{out_dir}: is a file, not the output folder of `gear train`")
     if (out_dir / COMPLETE).is_file():
         return out_dir
+    if _predates_marker(out_dir):
+        raise RunFolderError(_predates_message(out_dir))
     if any((out_dir / name).exists() for name in RUN_ENTRIES):
         raise RunFolderError(
             f"{out_dir}: its run did not finish (no {COMPLETE}); continue it with "
             f"`gear train SCENE --out {out_dir} --resume`, or start it over with --overwrite")
     raise RunFolderError(f"{out_dir}: not the output folder of `gear train` (no {COMPLETE})")
+
+
+def is_export(path: Path) -> bool:
+    """Whether `path` is a folder written by `gear export` (it holds the export manifest)."""
+    return path.is_dir() and (path / EXPORT_MANIFEST).is_file()
+
+
+def _predates_marker(out_dir: Path) -> bool:
+    """Published outputs without the completion marker: a run written by a gear older than the
+    marker (its outputs went straight into the folder), or one stopped between publishing its
+    outputs and writing the marker. Either way its last checkpoint can rewrite them."""
+    return (out_dir / "joints.json").is_file() and not (out_dir / COMPLETE).is_file()
+
+
+def _predates_message(out_dir: Path) -> str:
+    return (f"{out_dir}: has outputs but no {COMPLETE} (written by an older gear, or stopped "
+            f"while publishing them); `gear train SCENE --out {out_dir} --resume` rewrites them "
+            "from its last checkpoint and marks the run finished, --overwrite starts it over")
 
 
 def write_atomic(path: Path, text: str) -> None:

@@ -17,6 +17,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mjcf", type=Path, metavar="DIR",
                    help="folder for NAME.xml (MuJoCo) and its files (may be the --urdf folder)")
     p.add_argument("--name", default=None, help="model name (default: OUT_DIR's folder name)")
+    add_model_options(p)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=run)
+
+
+def add_model_options(p: argparse.ArgumentParser) -> None:
+    """The options shaping the exported model (`gear export` and `gear batch` share them)."""
     p.add_argument("--faces", type=int, default=defaults.FACES,
                    help=f"visual mesh faces per link (default {defaults.FACES})")
     mass = p.add_mutually_exclusive_group()
@@ -41,23 +48,26 @@ def register(sub: argparse._SubParsersAction) -> None:
                         f"(default {defaults.CONCAVITY:g}; smaller = more, tighter pieces)")
     p.add_argument("--max-pieces", type=int, default=defaults.MAX_PIECES,
                    help=f"convex pieces per link at most (default {defaults.MAX_PIECES})")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(handler=run)
+
+
+def model_options(args: argparse.Namespace):  # noqa: ANN201 (ExportOptions, imported lazily)
+    """The ExportOptions given by `add_model_options`' arguments."""
+    from gear.export.assembly import ExportOptions
+
+    return ExportOptions(
+        faces=args.faces, density=args.density, mass=args.mass, widen=args.widen,
+        damping=args.damping, friction=args.friction, effort=args.effort,
+        velocity=args.velocity, concavity=args.concavity, max_pieces=args.max_pieces)
 
 
 def run(args: argparse.Namespace) -> int:
-    from gear.export.assembly import ExportOptions
     from gear.export.bundle import export_twin
     from gear.export.urdf import roundtrip_errors
     from gear.run_folder import require_finished
 
     require_finished(args.out_dir)
-    options = ExportOptions(
-        faces=args.faces, density=args.density, mass=args.mass, widen=args.widen,
-        damping=args.damping, friction=args.friction, effort=args.effort,
-        velocity=args.velocity, concavity=args.concavity, max_pieces=args.max_pieces)
-    result = export_twin(args.out_dir, args.urdf, args.mjcf, name=args.name, options=options,
-                         quiet=args.quiet)
+    result = export_twin(args.out_dir, args.urdf, args.mjcf, name=args.name,
+                         options=model_options(args), quiet=args.quiet)
     for note in result.notes:
         print(f"note: {note}")
     a = result.assembly

@@ -20,8 +20,8 @@ from gear.export.mjcf import write_mjcf
 from gear.export.source import RunSource, load_run
 from gear.export.splats import write_part_splats
 from gear.export.urdf import write_urdf
-
-MANIFEST = "export.json"
+from gear.run_folder import EXPORT_MANIFEST as MANIFEST
+from gear.run_folder import is_export
 
 
 @dataclass
@@ -39,7 +39,7 @@ def _check_destination(folder: Path) -> None:
     export (which is replaced), and one whose parent cannot be written."""
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"{folder}: exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()) and not (folder / MANIFEST).is_file():
+    if folder.is_dir() and any(folder.iterdir()) and not is_export(folder):
         raise ValueError(f"{folder}: exists and is not empty (and is not a gear export)")
     try:
         folder.parent.mkdir(parents=True, exist_ok=True)
