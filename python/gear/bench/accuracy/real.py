@@ -56,9 +56,14 @@ def assets_dir(given: str | Path | None = None) -> Path:
     return repo_root() / DEFAULT_ASSETS
 
 
+def _rest(lower: float, upper: float) -> float:
+    """A joint's rest value: 0 (the modelled pose) or the limit nearest to it."""
+    return float(np.clip(0.0, lower, upper))
+
+
 def _moved(lower: float, upper: float, rng: np.random.Generator) -> tuple[float, float]:
     """(rest, rest + a seeded fraction of the range towards the farther limit)."""
-    rest = float(np.clip(0.0, lower, upper))
+    rest = _rest(lower, upper)
     amount = rng.uniform(*MOTION_FRACTION) * (upper - lower)
     if upper - rest >= rest - lower:
         return rest, min(rest + amount, upper)
@@ -107,10 +112,6 @@ def real_scenes(assets: Path, seed: int = 0) -> list[RealScene]:
             wide[first] = (rest, float(min(rest + np.deg2rad(WIDE_OPEN_DEG), limits[first][1])))
             out.append(RealScene(f"{base}-180", folder, wide))
     return out
-
-
-def _rest(lower: float, upper: float) -> float:
-    return float(np.clip(0.0, lower, upper))
 
 
 def select(scenes: list[RealScene], names: str | None) -> list[RealScene]:
