@@ -10,7 +10,7 @@
 use rayon::prelude::*;
 
 use super::bins::{Bins, Splat};
-use super::lanes::{evaluate, with_avx2, Lanes, LANES};
+use super::lanes::{evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
 use super::TILE;
 use crate::splat::constants::MIN_TRANSMITTANCE;
 
@@ -211,8 +211,8 @@ struct RowState {
     t: Lanes,
     depth: Lanes,
     consumed: [u32; LANES],
-    /// Pixels still blending.
-    open: [bool; LANES],
+    /// Pixels still blending (all ones).
+    open: Mask,
     /// Blended entries per pixel (for the counts).
     blended: [u32; LANES],
 }
@@ -235,7 +235,7 @@ fn blend_tile(
         t: [1.0; LANES],
         depth: [0.0; LANES],
         consumed: [start; LANES],
-        open: std::array::from_fn(|i| i < rows[r].len),
+        open: std::array::from_fn(|i| mask(i < rows[r].len)),
         blended: [0; LANES],
     });
     let test = RowTest::new(rows);
@@ -260,16 +260,15 @@ fn blend_tile(
             for i in 0..LANES {
                 let next = st.t[i] * (1.0 - e.alpha[i]);
                 let hit = st.open[i] & e.passes[i];
-                let stop = hit & (next < MIN_TRANSMITTANCE as f32);
+                let stop = hit & mask(next < MIN_TRANSMITTANCE as f32);
                 let blend = hit & !stop;
                 st.open[i] &= !stop;
-                st.blended[i] += u32::from(blend);
-                // Select, then multiply: a product inside the branch would not vectorise.
-                w[i] = e.alpha[i] * if blend { st.t[i] } else { 0.0 };
-                st.t[i] = if blend { next } else { st.t[i] };
-                st.consumed[i] = if blend { next_consumed } else { st.consumed[i] };
+                st.blended[i] += blend & 1;
+                w[i] = masked(e.alpha[i] * st.t[i], blend);
+                st.t[i] = select(blend, next, st.t[i]);
+                st.consumed[i] = (next_consumed & blend) | (st.consumed[i] & !blend);
             }
-            if !st.open.iter().any(|&o| o) {
+            if st.open.iter().all(|&o| o == 0) {
                 live &= !(1 << r);
             }
             for (a, &fc) in acc[r * channels..(r + 1) * channels].iter_mut().zip(f) {

@@ -11,7 +11,7 @@
 use rayon::prelude::*;
 
 use super::blend::{PixelState, Row, RowTest, Scene, TileList};
-use super::lanes::{evaluate, with_avx2, Lanes, LANES};
+use super::lanes::{evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
 use super::TILE;
 use crate::splat::constants::MAX_ALPHA;
 use crate::splat::types::OutputGradients;
@@ -144,18 +144,6 @@ impl TileBuffers {
     }
 }
 
-/// All ones where `condition` holds, else zero.
-#[inline(always)]
-fn mask(condition: bool) -> u32 {
-    u32::from(condition).wrapping_neg()
-}
-
-/// `value` where `mask` is all ones, +0 where it is zero.
-#[inline(always)]
-fn masked(value: f32, mask: u32) -> f32 {
-    f32::from_bits(value.to_bits() & mask)
-}
-
 /// The eight lanes summed as a fixed tree (vectorises; the same order every time).
 fn lane_sum(v: &Lanes) -> f32 {
     ((v[0] + v[4]) + (v[2] + v[6])) + ((v[1] + v[5]) + (v[3] + v[7]))
@@ -258,10 +246,7 @@ fn replay_tile(
             let (row, st) = (&rows[r], &mut state[r]);
             let dy = row.cy - s.v;
             let e = evaluate(s, &row.xs, dy);
-            // Lane masks are all-ones or zero u32s, applied with a bitwise and: bool arrays
-            // and per-lane branches would compile to scalar code.
-            let hit: [u32; LANES] =
-                std::array::from_fn(|i| mask(k < st.consumed[i] && e.passes[i]));
+            let hit: Mask = std::array::from_fn(|i| mask(k < st.consumed[i]) & e.passes[i]);
             if !hit.iter().any(|&h| h != 0) {
                 continue;
             }
@@ -316,7 +301,7 @@ fn replay_tile(
             // clamped and unblended lanes first (every factor below is finite, so their terms
             // are zeros), then the terms are summed over the lanes term by term (not lane by
             // lane), so that each sum is one vector add.
-            let unclamped: [u32; LANES] =
+            let unclamped: Mask =
                 std::array::from_fn(|i| hit[i] & mask(e.raw[i] <= MAX_ALPHA as f32));
             let grad_a: Lanes = std::array::from_fn(|i| masked(grad_a[i], unclamped[i]));
             let gp: Lanes = std::array::from_fn(|i| grad_a[i] * e.alpha[i]);
@@ -337,7 +322,7 @@ fn replay_tile(
                 }
             }
             for i in 0..LANES {
-                st.t[i] = if hit[i] != 0 { t_i[i] } else { st.t[i] };
+                st.t[i] = select(hit[i], t_i[i], st.t[i]);
             }
         }
         // Each pair's record is written once, its rows summed lane-wise in row order first.
