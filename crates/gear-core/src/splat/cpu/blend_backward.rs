@@ -10,7 +10,7 @@
 
 use rayon::prelude::*;
 
-use super::blend::{PixelState, Row, RowTest, Scene, TileList};
+use super::blend::{PixelState, Row, Scene};
 use super::lanes::{evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
 use super::TILE;
 use crate::splat::constants::MAX_ALPHA;
@@ -86,7 +86,6 @@ with_avx2!(
 #[inline(always)]
 fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &Records) {
     let bins = scene.bins;
-    let mut list = TileList::new();
     let mut buffers = TileBuffers::new(scene.channels);
     for tx in 0..bins.tiles_x {
         let tile = (band * bins.tiles_x + tx) as usize;
@@ -94,18 +93,8 @@ fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &Records
         if range.is_empty() {
             continue;
         }
-        list.gather(bins, tile, scene.features, scene.channels);
         let rows = Row::of_tile(tx, band, scene.width, scene.height);
-        replay_tile(
-            scene,
-            replay,
-            &list,
-            range.start as u32,
-            &rows,
-            tx,
-            &mut buffers,
-            records,
-        );
+        replay_tile(scene, replay, range, &rows, tx, &mut buffers, records);
     }
 }
 
@@ -195,16 +184,14 @@ fn load_row(
     st
 }
 
-/// Replays a tile's list back to front for all its rows at once (from the longest consumed
-/// prefix; an entry visits only the rows its ellipse spans and that consumed it), adding each
-/// row's contributions to the entry's record, rows in increasing order.
-#[allow(clippy::too_many_arguments)]
+/// Replays a tile's list (entries `range`) back to front for all its rows at once (from the
+/// longest consumed prefix; an entry visits only the rows its ellipse spans and that consumed
+/// it), adding each row's contributions to the entry's record, rows in increasing order.
 #[inline(always)]
 fn replay_tile(
     scene: &Scene,
     replay: &Replay,
-    list: &TileList,
-    start: u32,
+    range: std::ops::Range<usize>,
     rows: &[Row; TILE as usize],
     tx: u32,
     buffers: &mut TileBuffers,
@@ -213,6 +200,7 @@ fn replay_tile(
     let bins = scene.bins;
     let channels = scene.channels;
     let stride = replay.stride(channels);
+    let start = range.start as u32;
     let mut state: [RowState; TILE as usize] = std::array::from_fn(|r| {
         let first = ((rows[r].cy - 0.5) as u32 * scene.width + tx * TILE) as usize;
         if rows[r].len == 0 {
@@ -227,19 +215,17 @@ fn replay_tile(
     });
     let ends: [u32; TILE as usize] = std::array::from_fn(|r| state[r].last);
     let last = ends.iter().copied().max().unwrap();
-    let test = RowTest::new(rows);
     let zero = [0.0f32; LANES];
     for k in (start..last).rev() {
-        let j = (k - start) as usize;
-        let s = &list.splats[j];
-        let f = &list.features[j * channels..(j + 1) * channels];
+        let s = &bins.entries[k as usize];
+        let f = &bins.entry_features[k as usize * channels..(k as usize + 1) * channels];
         let mut touched = false;
         // Rows whose consumed prefix holds entry k.
         let holding = ends
             .iter()
             .enumerate()
             .fold(0, |m, (r, &end)| m | (u32::from(k < end) << r));
-        let mut visit = test.rows(s) & holding;
+        let mut visit = s.rows & holding;
         while visit != 0 {
             let r = visit.trailing_zeros() as usize;
             visit &= visit - 1;
@@ -291,11 +277,18 @@ fn replay_tile(
                 }
             }
             if scene.depth {
+                // Local copies, as for the features above.
+                let (g, mut behind, mut sum) = (st.grad_depth, st.behind_d, sums[6]);
                 for i in 0..LANES {
-                    grad_a[i] += st.grad_depth[i] * (s.z * t_i[i] - st.behind_d[i] * inv_keep[i]);
-                    sums[6][i] += w_hit[i] * st.grad_depth[i];
-                    st.behind_d[i] += w_hit[i] * s.z;
+                    grad_a[i] += g[i] * (s.z * t_i[i] - behind[i] * inv_keep[i]);
                 }
+                for i in 0..LANES {
+                    sum[i] += w_hit[i] * g[i];
+                }
+                for i in 0..LANES {
+                    behind[i] += w_hit[i] * s.z;
+                }
+                (st.behind_d, sums[6]) = (behind, sum);
             }
             // The 0.999 clamp passes no gradient to opacity and power: dL/dalpha is zeroed on
             // clamped and unblended lanes first (every factor below is finite, so their terms

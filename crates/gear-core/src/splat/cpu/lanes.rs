@@ -5,7 +5,7 @@
 // Lane loops index several [f32; 8] arrays in step: the form the compiler vectorises.
 #![allow(clippy::needless_range_loop)]
 
-use super::bins::Splat;
+use super::bins::Entry;
 use crate::splat::constants::{MAX_ALPHA, MIN_ALPHA};
 
 /// Defines `fn $name(args) -> ret` calling `$body` (an `#[inline(always)]` function) compiled
@@ -101,7 +101,7 @@ pub(super) struct Evaluation {
 
 /// Entry `s` at pixel centres x = `xs`, y = v + `dy` (as blend_common.wgsl's evaluate_quad).
 #[inline(always)]
-pub(super) fn evaluate(s: &Splat, xs: &Lanes, dy: f32) -> Evaluation {
+pub(super) fn evaluate(s: &Entry, xs: &Lanes, dy: f32) -> Evaluation {
     let mut e = Evaluation {
         dx: [0.0; LANES],
         gauss: [0.0; LANES],

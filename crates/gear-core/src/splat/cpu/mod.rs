@@ -2,6 +2,8 @@
 //! (projection, 1/255 tile test, depth-ordered per-tile lists, front-to-back blending with
 //! early termination, and the backward to the five input arrays), run with rayon threads and
 //! eight-pixel SIMD rows. It only evaluates a Gaussian on a pixel row its 1/255 ellipse spans.
+//! The backward borrows nothing from the caller: the forward keeps what it needs (the tile
+//! lists with their features, and each Gaussian's prepared projection).
 //!
 //! The backward uses no atomics and no per-pixel-per-Gaussian buffers: each (tile, Gaussian)
 //! pair gets a gradient record summed by the one thread that owns the tile, then each
@@ -24,11 +26,10 @@ use rayon::ThreadPool;
 use self::bins::{bin, Bins};
 use self::blend::{blend, PixelState, Scene};
 use self::blend_backward::{blend_backward, Replay, GEOMETRY};
-use self::project::{project, project_backward, InputGradients, View};
+use self::project::{project_backward, InputGradients, View};
 use crate::error::Result;
 use crate::splat::types::{
-    Camera, GaussianGradients, Gaussians, OutputGradients, OwnedGaussians, RenderOptions,
-    RenderOutput,
+    Camera, GaussianGradients, Gaussians, OutputGradients, RenderOptions, RenderOutput,
 };
 
 pub use self::pool::{build_pool, global_pool, thread_count};
@@ -47,14 +48,13 @@ pub struct RasterStats {
     pub evaluations: u64,
     /// Evaluations that were blended into their pixel.
     pub contributions: u64,
-    /// Bytes held by the forward state (inputs copy, lists, pixel state).
+    /// Bytes held by the forward state (lists, prepared projections, pixel state).
     pub state_bytes: u64,
 }
 
-/// What [`backward`] needs from [`forward`]: a copy of the inputs, the lists and the pixel
+/// What [`backward`] needs from [`forward`]: the lists, the prepared projections and the pixel
 /// state.
 pub struct CpuState {
-    gaussians: OwnedGaussians,
     camera: Camera,
     options: RenderOptions,
     bins: Bins,
@@ -66,8 +66,7 @@ impl CpuState {
     fn scene(&self) -> Scene<'_> {
         Scene {
             bins: &self.bins,
-            features: &self.gaussians.features,
-            channels: self.gaussians.channels,
+            channels: self.bins.channels,
             width: self.camera.width,
             height: self.camera.height,
             background: &self.options.background,
@@ -99,7 +98,6 @@ pub fn forward_in(
         let bins = bin(gaussians, camera);
         let scene = Scene {
             bins: &bins,
-            features: gaussians.features,
             channels: gaussians.channels,
             width: camera.width,
             height: camera.height,
@@ -107,15 +105,7 @@ pub fn forward_in(
             depth: options.depth,
         };
         let (features, alpha, depth, pixels, counts) = blend(&scene);
-        let n = gaussians.len();
-        let word = 4u64;
-        let state_bytes = word
-            * ((n * (11 + gaussians.channels)) // inputs copy
-                + n * std::mem::size_of::<bins::Splat>() / 4
-                + bins.tile_offsets.len()
-                + 2 * bins.entries.len() // entries, entry pairs
-                + bins.pair_offsets.len()
-                + 2 * pixels.final_t.len()) as u64;
+        let state_bytes = (bins.bytes() + 8 * pixels.final_t.len()) as u64;
         let stats = RasterStats {
             pairs: bins.pairs() as u64,
             evaluations: counts.evaluations,
@@ -128,7 +118,6 @@ pub fn forward_in(
             depth: options.depth.then_some(depth),
         };
         let state = CpuState {
-            gaussians: OwnedGaussians::from(*gaussians),
             camera: *camera,
             options: options.clone(),
             bins,
@@ -152,9 +141,9 @@ pub fn backward(
 
 /// Bytes a [`backward`] of `state` allocates at its peak (pair records and the outputs).
 pub fn backward_bytes(state: &CpuState, features_grad: bool) -> u64 {
-    let channels = state.gaussians.channels;
+    let channels = state.bins.channels;
     let stride = GEOMETRY + if features_grad { channels } else { 0 };
-    let n = state.gaussians.means.len();
+    let n = state.bins.prepared.len();
     4 * (state.bins.pairs() * stride + n * (11 + channels) + n) as u64
 }
 
@@ -165,7 +154,7 @@ pub fn backward_in(
     grads: &OutputGradients<f32>,
     features_grad: bool,
 ) -> Result<GaussianGradients<f32>> {
-    let channels = state.gaussians.channels;
+    let channels = state.bins.channels;
     grads.validate(state.camera.pixels(), channels)?;
     let replay = Replay {
         state: &state.pixels,
@@ -180,10 +169,9 @@ pub fn backward_in(
 
 /// Sums each Gaussian's pair records in tile order and chains them through the projection.
 fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGradients<f32> {
-    let gaussians = state.gaussians.view();
-    let n = gaussians.len();
-    let channels = gaussians.channels;
     let bins = &state.bins;
+    let n = bins.prepared.len();
+    let channels = bins.channels;
     let stride = GEOMETRY + if features_grad { channels } else { 0 };
     let view = View::new(&state.camera);
     let out_channels = if features_grad { channels } else { 0 };
@@ -214,7 +202,7 @@ fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGra
                     }
                 }
                 let screen: [f32; GEOMETRY] = std::array::from_fn(|q| sums[q]);
-                if let Some(p) = project(&gaussians, g, &view) {
+                if let Some(p) = bins.prepared[g].project(&view) {
                     *out = project_backward(&p, &screen, &view);
                 }
                 if out_channels > 0 {

@@ -1,8 +1,8 @@
 //! The per-Gaussian stage of the contract in f32, as project_common.wgsl, project.wgsl and
 //! project_backward.wgsl compute it: culling, the EWA projection with the low-pass, the conic,
 //! the opacity level of the 1/255 cut-off, and the backward chain from screen-space gradients
-//! to the four geometric input arrays. The backward recomputes the projection (no stored
-//! intermediates), exactly as the forward made it.
+//! to the four geometric input arrays. The backward redoes the arithmetic part of the
+//! projection from what the forward kept of it ([`Prepared`]), exactly as the forward did it.
 
 use glam::{Mat3, Vec2, Vec3, Vec4};
 
@@ -105,78 +105,112 @@ fn rotation(q: Vec4) -> Mat3 {
     )
 }
 
-/// Gaussian `i` projected by `view`, or None when the contract culls it.
-#[inline(always)]
-pub(super) fn project(g: &Gaussians, i: usize, view: &View) -> Option<Projection> {
-    let m = Vec3::from(g.means[i]);
-    let q = Vec4::from(g.quats[i]);
-    let ls = Vec3::from(g.log_scales[i]);
-    let logit = g.opacity_logits[i];
-    let features = &g.features[i * g.channels..(i + 1) * g.channels];
-    let finite = m.is_finite()
-        && q.is_finite()
-        && ls.is_finite()
-        && logit.is_finite()
-        && features.iter().all(|f| f.is_finite());
-    if !finite {
-        return None;
+/// What the projection of a Gaussian keeps of its inputs after culling: everything that needs a
+/// transcendental function or a check of the inputs. The backward keeps one per Gaussian so
+/// that it can redo the rest of the projection ([`Prepared::project`]) from it.
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct Prepared {
+    /// Camera-space centre.
+    pub t: Vec3,
+    /// Normalised quaternion (w, x, y, z) and the raw quaternion's norm.
+    pub qn: Vec4,
+    pub qnorm: f32,
+    pub scale: Vec3,
+    pub opacity: f32,
+}
+
+impl Prepared {
+    /// Gaussian `i` seen by `view`, or None when the contract culls it before its footprint.
+    #[inline(always)]
+    pub fn new(g: &Gaussians, i: usize, view: &View) -> Option<Prepared> {
+        let m = Vec3::from(g.means[i]);
+        let q = Vec4::from(g.quats[i]);
+        let ls = Vec3::from(g.log_scales[i]);
+        let logit = g.opacity_logits[i];
+        let features = &g.features[i * g.channels..(i + 1) * g.channels];
+        let finite = m.is_finite()
+            && q.is_finite()
+            && ls.is_finite()
+            && logit.is_finite()
+            && features.iter().all(|f| f.is_finite());
+        if !finite {
+            return None;
+        }
+        let t = view.w_rot * m + view.trans;
+        let opacity = 1.0 / (1.0 + (-logit).exp());
+        if !(t.z >= NEAR as f32 && t.z <= FAR as f32 && opacity >= MIN_ALPHA as f32) {
+            return None;
+        }
+        let qnorm = q.length();
+        Some(Prepared {
+            t,
+            qn: q / qnorm.max(QUAT_EPS as f32),
+            qnorm,
+            scale: Vec3::new(ls.x.exp(), ls.y.exp(), ls.z.exp()),
+            opacity,
+        })
     }
-    let t = view.w_rot * m + view.trans;
-    let opacity = 1.0 / (1.0 + (-logit).exp());
-    if !(t.z >= NEAR as f32 && t.z <= FAR as f32 && opacity >= MIN_ALPHA as f32) {
-        return None;
+
+    /// The rest of the projection (the footprint), or None when the contract culls it: the
+    /// same operations whenever it is called, so the backward's footprint is the forward's.
+    #[inline(always)]
+    pub fn project(&self, view: &View) -> Option<Projection> {
+        let Prepared {
+            t,
+            qn,
+            qnorm,
+            scale,
+            opacity,
+        } = *self;
+        let rot = rotation(qn);
+        let k = view.w_rot
+            * Mat3::from_cols(
+                rot.x_axis * scale.x,
+                rot.y_axis * scale.y,
+                rot.z_axis * scale.z,
+            );
+        let (fx, fy) = (view.fx, view.fy);
+        let z = t.z;
+        let (rx, ry) = (t.x / z, t.y / z);
+        let lim = view.limits;
+        let clamped = [rx.abs() > lim.x, ry.abs() > lim.y];
+        let xc = z * rx.max(-lim.x).min(lim.x);
+        let yc = z * ry.max(-lim.y).min(lim.y);
+        let j0 = Vec3::new(fx / z, 0.0, -fx * xc / (z * z));
+        let j1 = Vec3::new(0.0, fy / z, -fy * yc / (z * z));
+        let p0 = k.transpose() * j0;
+        let p1 = k.transpose() * j1;
+        let cov = Vec3::new(p0.dot(p0) + LP, p0.dot(p1), p1.dot(p1) + LP);
+        // det(P Pᵀ + λI) without the cancellation of a·c - b² (as project_common.wgsl).
+        let cr = p0.cross(p1);
+        let det = cr.dot(cr) + LP * (cov.x + cov.z - 2.0 * LP) + LP * LP;
+        if !(det > 0.0 && det.is_finite()) {
+            return None;
+        }
+        let conic = Vec3::new(cov.z / det, -cov.y / det, cov.x / det);
+        let mean2d = Vec2::new(fx * t.x / z + view.cx, fy * t.y / z + view.cy);
+        if !(mean2d.is_finite() && conic.is_finite()) {
+            return None;
+        }
+        Some(Projection {
+            t,
+            qn,
+            qnorm,
+            rot,
+            scale,
+            j0,
+            j1,
+            clamped,
+            k,
+            p0,
+            p1,
+            cov,
+            det,
+            conic,
+            mean2d,
+            opacity,
+        })
     }
-    let qnorm = q.length();
-    let qn = q / qnorm.max(QUAT_EPS as f32);
-    let rot = rotation(qn);
-    let scale = Vec3::new(ls.x.exp(), ls.y.exp(), ls.z.exp());
-    let k = view.w_rot
-        * Mat3::from_cols(
-            rot.x_axis * scale.x,
-            rot.y_axis * scale.y,
-            rot.z_axis * scale.z,
-        );
-    let (fx, fy) = (view.fx, view.fy);
-    let z = t.z;
-    let (rx, ry) = (t.x / z, t.y / z);
-    let lim = view.limits;
-    let clamped = [rx.abs() > lim.x, ry.abs() > lim.y];
-    let xc = z * rx.max(-lim.x).min(lim.x);
-    let yc = z * ry.max(-lim.y).min(lim.y);
-    let j0 = Vec3::new(fx / z, 0.0, -fx * xc / (z * z));
-    let j1 = Vec3::new(0.0, fy / z, -fy * yc / (z * z));
-    let p0 = k.transpose() * j0;
-    let p1 = k.transpose() * j1;
-    let cov = Vec3::new(p0.dot(p0) + LP, p0.dot(p1), p1.dot(p1) + LP);
-    // det(P Pᵀ + λI) without the cancellation of a·c - b² (as project_common.wgsl).
-    let cr = p0.cross(p1);
-    let det = cr.dot(cr) + LP * (cov.x + cov.z - 2.0 * LP) + LP * LP;
-    if !(det > 0.0 && det.is_finite()) {
-        return None;
-    }
-    let conic = Vec3::new(cov.z / det, -cov.y / det, cov.x / det);
-    let mean2d = Vec2::new(fx * t.x / z + view.cx, fy * t.y / z + view.cy);
-    if !(mean2d.is_finite() && conic.is_finite()) {
-        return None;
-    }
-    Some(Projection {
-        t,
-        qn,
-        qnorm,
-        rot,
-        scale,
-        j0,
-        j1,
-        clamped,
-        k,
-        p0,
-        p1,
-        cov,
-        det,
-        conic,
-        mean2d,
-        opacity,
-    })
 }
 
 /// Screen-space gradients of one Gaussian: conic a, b, c, mean u, v, opacity, z.
