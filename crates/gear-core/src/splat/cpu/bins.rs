@@ -10,8 +10,9 @@
 
 use rayon::prelude::*;
 
-use super::lanes::{mask, with_avx2, Lanes, LANES};
-use super::project::{Prepared, Projection, View};
+use super::lanes::LANES as BLOCK;
+use super::lanes::{array, mask, with_avx2, Lanes, LANES};
+use super::project::{Prepared, Screen, View};
 use super::TILE;
 use crate::splat::types::{Camera, Gaussians};
 
@@ -42,15 +43,15 @@ pub(super) struct Entry {
 }
 
 impl Entry {
-    fn new(p: &Projection) -> Self {
+    fn new(p: &Screen) -> Self {
         Entry {
-            u: p.mean2d.x,
-            v: p.mean2d.y,
-            a: p.conic.x,
-            b: p.conic.y,
-            c: p.conic.z,
+            u: p.mean2d[0],
+            v: p.mean2d[1],
+            a: p.conic[0],
+            b: p.conic[1],
+            c: p.conic[2],
             opacity: p.opacity,
-            z: p.t.z,
+            z: p.z,
             rows: 0,
         }
     }
@@ -70,14 +71,14 @@ struct Footprint {
 }
 
 impl Footprint {
-    fn new(p: &Projection) -> Self {
+    fn new(p: &Screen) -> Self {
         let level = p.level() * (1.0 + LEVEL_MARGIN) + LEVEL_MARGIN;
         Footprint {
-            u: p.mean2d.x,
-            v: p.mean2d.y,
-            reach: level * p.cov.z,
-            slope: p.cov.y / p.cov.z,
-            span: p.det / (p.cov.z * p.cov.z),
+            u: p.mean2d[0],
+            v: p.mean2d[1],
+            reach: level * p.cov[2],
+            slope: p.cov[1] / p.cov[2],
+            span: p.det / (p.cov[2] * p.cov[2]),
         }
     }
 
@@ -121,7 +122,7 @@ impl Footprint {
             return;
         };
         let tile = TILE as f32;
-        let bits: [u32; LANES] = std::array::from_fn(|r| 1 << r);
+        let bits: [u32; LANES] = array(|r| 1 << r);
         for ty in ty0..=ty1 {
             let (first, last) = self.columns(ty, grid.width, grid.height);
             let lo = first.iter().copied().fold(f32::INFINITY, f32::min);
@@ -132,7 +133,7 @@ impl Footprint {
             for tx in (lo / tile) as u32..=(hi / tile) as u32 {
                 let (x0, x1) = (tx as f32 * tile, tx as f32 * tile + (tile - 1.0));
                 let meets: [u32; LANES] =
-                    std::array::from_fn(|r| mask(first[r] <= x1) & mask(last[r] >= x0) & bits[r]);
+                    array(|r| mask(first[r] <= x1) & mask(last[r] >= x0) & bits[r]);
                 let rows = meets.iter().fold(0, |m, &b| m | b);
                 if rows != 0 {
                     out.push([ty * grid.tiles_x + tx, rows]);
@@ -158,8 +159,10 @@ pub(super) struct Bins {
     /// contiguous when they are summed.
     pub pair_offsets: Vec<u32>,
     pub entry_pairs: Vec<u32>,
-    /// Each Gaussian's prepared projection (default for culled ones).
+    /// The prepared projections of Gaussians 8b..8b + 8 in block b.
     pub prepared: Vec<Prepared>,
+    /// Gaussians.
+    pub len: usize,
 }
 
 impl Bins {
@@ -197,6 +200,7 @@ struct Grid {
 
 /// Per-Gaussian outputs of binning for a run of Gaussians.
 struct Chunk<'a> {
+    /// Blocks of eight Gaussians.
     prepared: &'a mut [Prepared],
     splats: &'a mut [Entry],
     /// Pairs of each Gaussian.
@@ -219,19 +223,24 @@ fn bin_chunk_body(
     grid: Grid,
 ) -> Vec<[u32; 2]> {
     let mut pairs = Vec::with_capacity(2 * chunk.counts.len());
-    for (k, count) in chunk.counts.iter_mut().enumerate() {
-        let i = first + k;
-        let Some(prepared) = Prepared::new(gaussians, i, view) else {
-            continue;
-        };
-        let Some(p) = prepared.project(view) else {
-            continue;
-        };
-        let before = pairs.len();
-        Footprint::new(&p).pairs(grid, &mut pairs);
-        *count = (pairs.len() - before) as u32;
-        chunk.prepared[k] = prepared;
-        chunk.splats[k] = Entry::new(&p);
+    let blocks = chunk
+        .prepared
+        .iter_mut()
+        .zip(chunk.splats.chunks_mut(BLOCK))
+        .zip(chunk.counts.chunks_mut(BLOCK));
+    for (b, ((prepared, splats), counts)) in blocks.enumerate() {
+        *prepared = Prepared::new(gaussians, first + b * BLOCK, view);
+        let p = prepared.project(view);
+        for (i, (splat, count)) in splats.iter_mut().zip(counts.iter_mut()).enumerate() {
+            if p.valid[i] == 0 {
+                continue;
+            }
+            let screen = p.screen(i);
+            let before = pairs.len();
+            Footprint::new(&screen).pairs(grid, &mut pairs);
+            *count = (pairs.len() - before) as u32;
+            *splat = Entry::new(&screen);
+        }
     }
     pairs
 }
@@ -251,13 +260,13 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     };
     let n = gaussians.len();
     let channels = gaussians.channels;
-    let mut prepared = vec![Prepared::default(); n];
+    let mut prepared = vec![Prepared::default(); n.div_ceil(BLOCK)];
     let mut splats = vec![Entry::default(); n];
     let mut counts = vec![0u32; n];
     // Chunks of Gaussians: few enough for little overhead, enough to balance the threads.
-    let chunk = 1024;
+    let chunk = 128 * BLOCK;
     let pairs: Vec<[u32; 2]> = prepared
-        .par_chunks_mut(chunk)
+        .par_chunks_mut(chunk / BLOCK)
         .zip(splats.par_chunks_mut(chunk))
         .zip(counts.par_chunks_mut(chunk))
         .enumerate()
@@ -322,5 +331,6 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
         pair_offsets,
         entry_pairs,
         prepared,
+        len: n,
     }
 }

@@ -9,7 +9,7 @@
 use rayon::prelude::*;
 
 use super::bins::Bins;
-use super::lanes::{evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
+use super::lanes::{array, evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
 use super::TILE;
 use crate::splat::constants::MIN_TRANSMITTANCE;
 
@@ -40,7 +40,7 @@ impl BlendCounts {
 }
 
 /// Where a pixel row of a tile lies.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 pub(super) struct Row {
     /// Pixels inside the image (0 for a row below it, else 1..=8).
     pub len: usize,
@@ -58,13 +58,13 @@ impl Row {
                 0
             },
             cy: y as f32 + 0.5,
-            xs: std::array::from_fn(|i| x0 as f32 + 0.5 + i as f32),
+            xs: array(|i| x0 as f32 + 0.5 + i as f32),
         }
     }
 
     /// The TILE rows of tile (tx, ty).
     pub fn of_tile(tx: u32, ty: u32, width: u32, height: u32) -> [Row; TILE as usize] {
-        std::array::from_fn(|r| Row::new(tx * TILE, ty * TILE + r as u32, width, height))
+        array(|r| Row::new(tx * TILE, ty * TILE + r as u32, width, height))
     }
 }
 
@@ -147,7 +147,7 @@ fn blend_band_body(scene: &Scene, band: u32, mut out: BandImages) -> BlendCounts
 }
 
 /// A pixel row's blend state.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Default)]
 struct RowState {
     t: Lanes,
     depth: Lanes,
@@ -175,11 +175,11 @@ fn blend_tile(
     let start = range.start as u32;
     let entries = &scene.bins.entries[range.clone()];
     let features = &scene.bins.entry_features[range.start * channels..range.end * channels];
-    let mut state: [RowState; TILE as usize] = std::array::from_fn(|r| RowState {
+    let mut state: [RowState; TILE as usize] = array(|r| RowState {
         t: [1.0; LANES],
         depth: [0.0; LANES],
         consumed: [start; LANES],
-        open: std::array::from_fn(|i| mask(i < rows[r].len)),
+        open: array(|i| mask(i < rows[r].len)),
         blended: [0; LANES],
     });
     // Rows with a pixel still blending.

@@ -11,7 +11,7 @@
 use rayon::prelude::*;
 
 use super::blend::{PixelState, Row, Scene};
-use super::lanes::{evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
+use super::lanes::{array, evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
 use super::TILE;
 use crate::splat::constants::MAX_ALPHA;
 use crate::splat::types::OutputGradients;
@@ -201,7 +201,7 @@ fn replay_tile(
     let channels = scene.channels;
     let stride = replay.stride(channels);
     let start = range.start as u32;
-    let mut state: [RowState; TILE as usize] = std::array::from_fn(|r| {
+    let mut state: [RowState; TILE as usize] = array(|r| {
         let first = ((rows[r].cy - 0.5) as u32 * scene.width + tx * TILE) as usize;
         if rows[r].len == 0 {
             RowState {
@@ -213,7 +213,7 @@ fn replay_tile(
             load_row(scene, replay, &rows[r], r, first, start, buffers)
         }
     });
-    let ends: [u32; TILE as usize] = std::array::from_fn(|r| state[r].last);
+    let ends: [u32; TILE as usize] = array(|r| state[r].last);
     let last = ends.iter().copied().max().unwrap();
     let zero = [0.0f32; LANES];
     for k in (start..last).rev() {
@@ -232,7 +232,7 @@ fn replay_tile(
             let (row, st) = (&rows[r], &mut state[r]);
             let dy = row.cy - s.v;
             let e = evaluate(s, &row.xs, dy);
-            let hit: Mask = std::array::from_fn(|i| mask(k < st.consumed[i]) & e.passes[i]);
+            let hit: Mask = array(|i| mask(k < st.consumed[i]) & e.passes[i]);
             if !hit.iter().any(|&h| h != 0) {
                 continue;
             }
@@ -254,7 +254,7 @@ fn replay_tile(
             }
             // The blended lanes' weights, zero elsewhere: the sums below multiply by them
             // instead of branching per lane, which keeps them vector adds.
-            let w_hit: Lanes = std::array::from_fn(|i| masked(w[i], hit[i]));
+            let w_hit: Lanes = array(|i| masked(w[i], hit[i]));
             let sums = &mut buffers.sums;
             for (c, &fc) in f.iter().enumerate() {
                 // Whole-row copies and one loop per update: the form the compiler keeps in
@@ -294,18 +294,17 @@ fn replay_tile(
             // clamped and unblended lanes first (every factor below is finite, so their terms
             // are zeros), then the terms are summed over the lanes term by term (not lane by
             // lane), so that each sum is one vector add.
-            let unclamped: Mask =
-                std::array::from_fn(|i| hit[i] & mask(e.raw[i] <= MAX_ALPHA as f32));
-            let grad_a: Lanes = std::array::from_fn(|i| masked(grad_a[i], unclamped[i]));
-            let gp: Lanes = std::array::from_fn(|i| grad_a[i] * e.alpha[i]);
+            let unclamped: Mask = array(|i| hit[i] & mask(e.raw[i] <= MAX_ALPHA as f32));
+            let grad_a: Lanes = array(|i| masked(grad_a[i], unclamped[i]));
+            let gp: Lanes = array(|i| grad_a[i] * e.alpha[i]);
             let dx = &e.dx;
             let terms: [Lanes; 6] = [
-                std::array::from_fn(|i| -0.5 * dx[i] * dx[i] * gp[i]),
-                std::array::from_fn(|i| -dx[i] * dy * gp[i]),
-                std::array::from_fn(|i| -0.5 * dy * dy * gp[i]),
-                std::array::from_fn(|i| (s.a * dx[i] + s.b * dy) * gp[i]),
-                std::array::from_fn(|i| (s.b * dx[i] + s.c * dy) * gp[i]),
-                std::array::from_fn(|i| grad_a[i] * e.gauss[i]),
+                array(|i| -0.5 * dx[i] * dx[i] * gp[i]),
+                array(|i| -dx[i] * dy * gp[i]),
+                array(|i| -0.5 * dy * dy * gp[i]),
+                array(|i| (s.a * dx[i] + s.b * dy) * gp[i]),
+                array(|i| (s.b * dx[i] + s.c * dy) * gp[i]),
+                array(|i| grad_a[i] * e.gauss[i]),
             ];
             // A fixed-size view, so the adds compile to whole-row vector adds.
             let geometry: &mut [Lanes; 6] = (&mut sums[..6]).try_into().unwrap();

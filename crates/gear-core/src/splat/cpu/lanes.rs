@@ -39,6 +39,17 @@ pub(super) type Lanes = [f32; LANES];
 /// and per-lane branches would compile to scalar code per lane.
 pub(super) type Mask = [u32; LANES];
 
+/// `[f(0), f(1), ...]` as `std::array::from_fn` builds it, but always inlined: from_fn's
+/// element calls stay out-of-line calls, outside the AVX2 code and one per element.
+#[inline(always)]
+pub(super) fn array<T: Copy + Default, const N: usize>(mut f: impl FnMut(usize) -> T) -> [T; N] {
+    let mut out = [T::default(); N];
+    for (i, o) in out.iter_mut().enumerate() {
+        *o = f(i);
+    }
+    out
+}
+
 /// All ones where `condition` holds, else zero.
 #[inline(always)]
 pub(super) fn mask(condition: bool) -> u32 {

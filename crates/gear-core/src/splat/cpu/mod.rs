@@ -16,6 +16,7 @@ mod blend_backward;
 mod lanes;
 mod pool;
 mod project;
+mod wide;
 
 #[cfg(test)]
 mod tests;
@@ -26,7 +27,9 @@ use rayon::ThreadPool;
 use self::bins::{bin, Bins};
 use self::blend::{blend, PixelState, Scene};
 use self::blend_backward::{blend_backward, Replay, GEOMETRY};
-use self::project::{project_backward, InputGradients, View};
+use self::lanes::{array, with_avx2, LANES as BLOCK};
+use self::project::{project_backward, View};
+use self::wide::F8;
 use crate::error::Result;
 use crate::splat::types::{
     Camera, GaussianGradients, Gaussians, OutputGradients, RenderOptions, RenderOutput,
@@ -143,7 +146,7 @@ pub fn backward(
 pub fn backward_bytes(state: &CpuState, features_grad: bool) -> u64 {
     let channels = state.bins.channels;
     let stride = GEOMETRY + if features_grad { channels } else { 0 };
-    let n = state.bins.prepared.len();
+    let n = state.bins.len;
     4 * (state.bins.pairs() * stride + n * (11 + channels) + n) as u64
 }
 
@@ -167,57 +170,109 @@ pub fn backward_in(
     })
 }
 
+/// The gradient arrays of a run of Gaussians (a whole number of blocks of eight, but for the
+/// last run).
+struct GradientChunk<'a> {
+    means: &'a mut [[f32; 3]],
+    quats: &'a mut [[f32; 4]],
+    log_scales: &'a mut [[f32; 3]],
+    logits: &'a mut [f32],
+    /// Gaussians x `channels`; no channels without feature gradients.
+    features: &'a mut [f32],
+    channels: usize,
+}
+
 /// Sums each Gaussian's pair records in tile order and chains them through the projection.
 fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGradients<f32> {
     let bins = &state.bins;
-    let n = bins.prepared.len();
-    let channels = bins.channels;
-    let stride = GEOMETRY + if features_grad { channels } else { 0 };
+    let n = bins.len;
+    let channels = if features_grad { bins.channels } else { 0 };
     let view = View::new(&state.camera);
-    let out_channels = if features_grad { channels } else { 0 };
-    // One (unused) column without feature gradients keeps the chunks aligned with Gaussians.
-    let width = out_channels.max(1);
-    let mut features = vec![0.0f32; n * width];
-    let mut geometry = vec![InputGradients::default(); n];
-    // Chunks of whole Gaussians (a zero-width feature row when features are skipped).
-    let chunk = 256;
-    geometry
+    let mut means = vec![[0.0f32; 3]; n];
+    let mut quats = vec![[0.0f32; 4]; n];
+    let mut log_scales = vec![[0.0f32; 3]; n];
+    let mut logits = vec![0.0f32; n];
+    let mut features = vec![0.0f32; n * channels];
+    // Runs of whole blocks; a zero-width feature chunk keeps the zip aligned without features.
+    let chunk = 32 * BLOCK;
+    let feature_chunks: Vec<&mut [f32]> = if channels > 0 {
+        features.chunks_mut(chunk * channels).collect()
+    } else {
+        (0..n.div_ceil(chunk)).map(|_| &mut [][..]).collect()
+    };
+    means
         .par_chunks_mut(chunk)
-        .zip(features.par_chunks_mut(chunk * width))
+        .zip(quats.par_chunks_mut(chunk))
+        .zip(log_scales.par_chunks_mut(chunk))
+        .zip(logits.par_chunks_mut(chunk))
+        .zip(feature_chunks)
         .enumerate()
-        .for_each(|(ci, (geometry, features))| {
-            let mut sums = vec![0.0f32; stride];
-            for (k, out) in geometry.iter_mut().enumerate() {
-                let g = ci * chunk + k;
-                let pairs = bins.pairs_of(g);
-                if pairs.is_empty() {
-                    continue;
-                }
-                // A Gaussian's records are contiguous, in tile order.
-                sums.fill(0.0);
-                for record in records[pairs.start * stride..pairs.end * stride].chunks_exact(stride)
-                {
-                    for (s, v) in sums.iter_mut().zip(record) {
-                        *s += v;
-                    }
-                }
-                let screen: [f32; GEOMETRY] = std::array::from_fn(|q| sums[q]);
-                if let Some(p) = bins.prepared[g].project(&view) {
-                    *out = project_backward(&p, &screen, &view);
-                }
-                if out_channels > 0 {
-                    features[k * channels..(k + 1) * channels].copy_from_slice(&sums[GEOMETRY..]);
+        .for_each(|(c, ((((means, quats), log_scales), logits), features))| {
+            let out = GradientChunk {
+                means,
+                quats,
+                log_scales,
+                logits,
+                features,
+                channels,
+            };
+            reduce_chunk(bins, records, &view, c * chunk, out);
+        });
+    GaussianGradients {
+        means,
+        quats,
+        log_scales,
+        opacity_logits: logits,
+        features,
+    }
+}
+
+with_avx2!(
+    /// [`reduce`] of Gaussians `first..` into `out`.
+    fn reduce_chunk(bins: &Bins, records: &[f32], view: &View, first: usize, out: GradientChunk) -> () =
+        reduce_chunk_body
+);
+
+#[inline(always)]
+fn reduce_chunk_body(bins: &Bins, records: &[f32], view: &View, first: usize, out: GradientChunk) {
+    let channels = out.channels;
+    let stride = GEOMETRY + channels;
+    for (k, logits) in out.logits.chunks_mut(BLOCK).enumerate() {
+        let first = first + k * BLOCK;
+        let mut screen = [F8::default(); GEOMETRY];
+        let mut any = false;
+        for (i, g) in (first..first + logits.len()).enumerate() {
+            let pairs = bins.pairs_of(g);
+            any |= !pairs.is_empty();
+            // A Gaussian's records are contiguous, in tile order.
+            let mine = &records[pairs.start * stride..pairs.end * stride];
+            for record in mine.chunks_exact(stride) {
+                for (sum, &v) in screen.iter_mut().zip(record) {
+                    sum.0[i] += v;
                 }
             }
-        });
-    if out_channels == 0 {
-        features = Vec::new();
-    }
-    GaussianGradients {
-        means: geometry.iter().map(|g| g.mean).collect(),
-        quats: geometry.iter().map(|g| g.quat).collect(),
-        log_scales: geometry.iter().map(|g| g.log_scale).collect(),
-        opacity_logits: geometry.iter().map(|g| g.logit).collect(),
-        features,
+            let row = k * BLOCK + i;
+            for c in 0..channels {
+                out.features[row * channels + c] = mine
+                    .chunks_exact(stride)
+                    .map(|r| r[GEOMETRY + c])
+                    .fold(0.0, |s, v| s + v);
+            }
+        }
+        if !any {
+            continue;
+        }
+        let p = bins.prepared[first / BLOCK].project(view);
+        let grads = project_backward(&p, &screen, view);
+        for (i, logit) in logits.iter_mut().enumerate() {
+            if bins.pairs_of(first + i).is_empty() {
+                continue;
+            }
+            let row = k * BLOCK + i;
+            out.means[row] = array(|c| grads.mean[c].0[i]);
+            out.quats[row] = array(|c| grads.quat[c].0[i]);
+            out.log_scales[row] = array(|c| grads.log_scale[c].0[i]);
+            *logit = grads.logit.0[i];
+        }
     }
 }
