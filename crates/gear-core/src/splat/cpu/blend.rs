@@ -223,9 +223,12 @@ fn blend_tile(
                 }
             }
             if scene.depth {
+                // A whole-row copy: updated in place, the lanes would be scalar code.
+                let mut depth = st.depth;
                 for i in 0..LANES {
-                    st.depth[i] += w[i] * s.z;
+                    depth[i] += w[i] * s.z;
                 }
+                st.depth = depth;
             }
         }
     }
