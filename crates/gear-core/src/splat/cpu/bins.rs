@@ -245,6 +245,34 @@ fn bin_chunk_body(
     pairs
 }
 
+/// `keys` (depth bits << 32 | index, in index order) sorted by depth, ties in index order: a
+/// stable least-significant-digit radix sort of the depth bits, a byte per pass (passes where
+/// every key has the same byte are skipped). z > 0, so its bits order like the floats.
+fn depth_order(mut keys: Vec<u64>) -> Vec<u64> {
+    let mut spare = vec![0u64; keys.len()];
+    for shift in [32, 40, 48, 56] {
+        let digit = |key: u64| (key >> shift) as usize & 0xff;
+        let mut offsets = [0usize; 256];
+        for &key in &keys {
+            offsets[digit(key)] += 1;
+        }
+        if offsets.contains(&keys.len()) {
+            continue;
+        }
+        let mut total = 0;
+        for slot in offsets.iter_mut() {
+            (*slot, total) = (total, total + *slot);
+        }
+        for &key in &keys {
+            let d = digit(key);
+            spare[offsets[d]] = key;
+            offsets[d] += 1;
+        }
+        std::mem::swap(&mut keys, &mut spare);
+    }
+    keys
+}
+
 /// Projects and bins `gaussians`; call inside the executor's thread pool.
 ///
 /// Everything per Gaussian runs in index order (parallel, streaming through memory); only the
@@ -285,16 +313,16 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
         pair_offsets[i + 1] = pair_offsets[i] + count;
     }
 
-    // Depth order of the Gaussians with pairs; z > 0, so its bits order like the floats, and
-    // the index breaks ties.
-    let mut by_depth: Vec<u64> = splats
-        .iter()
-        .zip(&counts)
-        .enumerate()
-        .filter(|(_, (_, &count))| count > 0)
-        .map(|(i, (s, _))| (u64::from(s.z.to_bits()) << 32) | i as u64)
-        .collect();
-    by_depth.par_sort_unstable();
+    // Depth order of the Gaussians with pairs, ties by index.
+    let by_depth = depth_order(
+        splats
+            .iter()
+            .zip(&counts)
+            .enumerate()
+            .filter(|(_, (_, &count))| count > 0)
+            .map(|(i, (s, _))| (u64::from(s.z.to_bits()) << 32) | i as u64)
+            .collect(),
+    );
 
     // Counting sort of the pairs by tile, fed in depth order, so every list is in depth order.
     let tile_count = (tiles[0] * tiles[1]) as usize;
@@ -332,5 +360,28 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
         entry_pairs,
         prepared,
         len: n,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// The radix sort orders like a comparison sort of (depth, index), ties included.
+    #[test]
+    fn depth_order_matches_sort() {
+        let mut rng = fastrand::Rng::with_seed(5);
+        let depths = [0.01f32, 0.5, 1.0, 1.0, 3.25, 7.0, 1e4];
+        let keys: Vec<u64> = (0..5000u64)
+            .map(|i| {
+                let z = if rng.bool() {
+                    depths[rng.usize(..depths.len())]
+                } else {
+                    rng.f32() * 100.0 + 0.01
+                };
+                (u64::from(z.to_bits()) << 32) | i
+            })
+            .collect();
+        let mut want = keys.clone();
+        want.sort_unstable();
+        assert_eq!(super::depth_order(keys), want);
     }
 }
