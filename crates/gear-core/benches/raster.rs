@@ -95,6 +95,8 @@ struct Timing {
     forward_cpu: Option<f64>,
     backward_cpu: Option<f64>,
     pairs: u64,
+    /// Gaussian-pixel evaluations per pixel and the fraction blended (CPU executor only).
+    evaluations: Option<(f64, f64)>,
 }
 
 /// Which executor runs the rasterizer.
@@ -126,6 +128,7 @@ fn time(backend: Backend, n: usize, size: u32, repeats: usize) -> Timing {
     let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
     let (mut fwd_cpu, mut bwd_cpu) = (Some(0.0), Some(0.0));
     let mut pairs = 0u64;
+    let mut evaluations = None;
     for run in 0..=repeats {
         let cpu0 = cpu_ms();
         let start = Instant::now();
@@ -142,6 +145,11 @@ fn time(backend: Backend, n: usize, size: u32, repeats: usize) -> Timing {
                 let (middle, cpu1) = (Instant::now(), cpu_ms());
                 cpu::backward(&state, &grads, true).expect("backward");
                 pairs = state.stats.pairs;
+                let s = state.stats;
+                evaluations = Some((
+                    s.evaluations as f64 / pixels as f64,
+                    s.contributions as f64 / s.evaluations.max(1) as f64,
+                ));
                 (middle, cpu1)
             }
         };
@@ -161,6 +169,7 @@ fn time(backend: Backend, n: usize, size: u32, repeats: usize) -> Timing {
         forward_cpu: fwd_cpu.map(|t| t / repeats as f64),
         backward_cpu: bwd_cpu.map(|t| t / repeats as f64),
         pairs,
+        evaluations,
     }
 }
 
@@ -188,8 +197,17 @@ fn main() {
     }
     println!("{repeats} runs, C={CHANNELS}, depth on; wall: median ms, cpu: mean ms per call");
     println!(
-        "{:>8} {:>9} {:>5} {:>9} | {:>8} {:>8} | {:>8} {:>8}",
-        "N", "image", "exec", "pairs", "fwd wall", "bwd wall", "fwd cpu", "bwd cpu"
+        "{:>8} {:>9} {:>5} {:>9} | {:>8} {:>8} | {:>8} {:>8} | {:>7} {:>6}",
+        "N",
+        "image",
+        "exec",
+        "pairs",
+        "fwd wall",
+        "bwd wall",
+        "fwd cpu",
+        "bwd cpu",
+        "eval/px",
+        "useful"
     );
     // GEAR_BENCH_EXEC=cpu or wgpu times one executor only (e.g. under a profiler).
     let only = std::env::var("GEAR_BENCH_EXEC").unwrap_or_default();
@@ -201,8 +219,12 @@ fn main() {
         for &backend in &backends {
             let t = time(backend, n, size, repeats);
             let name = format!("{backend:?}").to_lowercase();
+            let (per_pixel, useful) = t.evaluations.map_or_else(
+                || ("-".into(), "-".into()),
+                |(e, u)| (format!("{e:.1}"), format!("{:.0}%", 100.0 * u)),
+            );
             println!(
-                "{n:>8} {size:>4}x{size:<4} {name:>5} {:>9} | {:>8.1} {:>8.1} | {:>8} {:>8}",
+                "{n:>8} {size:>4}x{size:<4} {name:>5} {:>9} | {:>8.1} {:>8.1} | {:>8} {:>8} | {per_pixel:>7} {useful:>6}",
                 t.pairs,
                 t.forward,
                 t.backward,

@@ -1,28 +1,35 @@
 //! Stage 1 and the binning of the CPU executor: project every Gaussian (in parallel), sort the
 //! survivors by depth (ties by index, as the GPU's stable radix sort and the reference do), and
-//! build each tile's depth-ordered list of the Gaussians whose 1/255 ellipse reaches it (the
-//! test of tile_test.wgsl). A counting sort by tile id over the (tile, Gaussian) pairs in depth
-//! order keeps every list in depth order and records where each pair landed, so the backward
-//! can reduce each Gaussian's per-pair gradients in a fixed order.
+//! build each tile's depth-ordered list of the Gaussians whose 1/255 ellipse spans a pixel
+//! centre of one of its rows, with the mask of those rows. A counting sort by tile over the
+//! (tile, Gaussian) pairs in depth order keeps every list in depth order and records where each
+//! pair landed, so the backward can reduce each Gaussian's per-pair gradients in a fixed order.
+
+// Lane loops index several [f32; 8] arrays in step: the form the compiler vectorises.
+#![allow(clippy::needless_range_loop)]
 
 use rayon::prelude::*;
 
-use super::lanes::with_avx2;
-use super::project::{project, Projection, View};
+use super::lanes::LANES as BLOCK;
+use super::lanes::{array, mask, with_avx2, Lanes, LANES};
+use super::project::{Prepared, Screen, View};
 use super::TILE;
 use crate::splat::types::{Camera, Gaussians};
 
-/// The relative and absolute margins by which the blend's row test widens the 1/255 level:
-/// f32 rounding of the per-pixel quadratic must never make a pixel pass that the row test
-/// dropped (the per-pixel test still decides exactly).
+/// The relative and absolute margins by which the row spans widen the 1/255 level: f32
+/// rounding of the per-pixel quadratic must never make a pixel pass that the spans left out
+/// (the per-pixel test still decides exactly).
 const LEVEL_MARGIN: f32 = 1e-3;
 /// Pixels of slack on each side of a row's span.
 const SPAN_SLACK: f32 = 1e-2;
+/// Pixel rows of slack above and below the ellipse's vertical extent; the rows inside it are
+/// then tested one by one.
+const ROW_SLACK: f32 = 1.0;
 
-/// What the blend reads of a Gaussian: the contract's evaluation (mean, conic, opacity,
-/// depth) and the row test's constants.
+/// A list entry: what the blend reads of a Gaussian (the contract's evaluation: mean, conic,
+/// opacity, depth) and the rows of the tile that its ellipse spans.
 #[derive(Debug, Clone, Copy, Default)]
-pub(super) struct Splat {
+pub(super) struct Entry {
     pub u: f32,
     pub v: f32,
     /// Conic a, b, c.
@@ -31,130 +38,131 @@ pub(super) struct Splat {
     pub c: f32,
     pub opacity: f32,
     pub z: f32,
-    /// On a pixel row at dy = y - v the ellipse dᵀ conic d <= level spans x in
-    /// u + slope·dy ± sqrt((reach - dy²)·span): reach = level·Σ2D.c (widened), slope =
-    /// Σ2D.b / Σ2D.c, span = det Σ2D / Σ2D.c². Written with Σ2D, not the conic, so that long
-    /// thin Gaussians suffer no cancellation.
-    pub reach: f32,
-    pub slope: f32,
-    pub span: f32,
+    /// Bit r set where the ellipse spans a pixel centre of the tile's row r (inside the image).
+    pub rows: u32,
 }
 
-impl Splat {
-    fn new(p: &Projection) -> Self {
-        let level = p.level() * (1.0 + LEVEL_MARGIN) + LEVEL_MARGIN;
-        Splat {
-            u: p.mean2d.x,
-            v: p.mean2d.y,
-            a: p.conic.x,
-            b: p.conic.y,
-            c: p.conic.z,
+impl Entry {
+    fn new(p: &Screen) -> Self {
+        Entry {
+            u: p.mean2d[0],
+            v: p.mean2d[1],
+            a: p.conic[0],
+            b: p.conic[1],
+            c: p.conic[2],
             opacity: p.opacity,
-            z: p.t.z,
-            reach: level * p.cov.z,
-            slope: p.cov.y / p.cov.z,
-            span: p.det / (p.cov.z * p.cov.z),
+            z: p.z,
+            rows: 0,
+        }
+    }
+}
+
+/// Where a Gaussian's ellipse lies, for binning: on a pixel row at dy = y - v the ellipse
+/// dᵀ conic d <= level spans x in u + slope·dy ± sqrt((reach - dy²)·span), with reach =
+/// level·Σ2D.c (widened), slope = Σ2D.b / Σ2D.c and span = det Σ2D / Σ2D.c². Written with Σ2D,
+/// not the conic, so that long thin Gaussians suffer no cancellation.
+#[derive(Debug, Clone, Copy)]
+struct Footprint {
+    u: f32,
+    v: f32,
+    reach: f32,
+    slope: f32,
+    span: f32,
+}
+
+impl Footprint {
+    fn new(p: &Screen) -> Self {
+        let level = p.level() * (1.0 + LEVEL_MARGIN) + LEVEL_MARGIN;
+        Footprint {
+            u: p.mean2d[0],
+            v: p.mean2d[1],
+            reach: level * p.cov[2],
+            slope: p.cov[1] / p.cov[2],
+            span: p.det / (p.cov[2] * p.cov[2]),
         }
     }
 
-    /// Bit r set where the Gaussian can reach a pixel of tile row r (pixel-centre y = `y0` +
-    /// r) whose pixel centres span [x_lo, x_hi]: a few flops and compares per row, before any
-    /// exp, for all TILE rows at once (one SIMD row, no branch).
+    /// The tile rows [first, last] holding an image row the ellipse may reach, or None.
+    fn tile_rows(&self, height: u32) -> Option<(u32, u32)> {
+        let extent = self.reach.sqrt() + ROW_SLACK;
+        // NaN bounds widen to the image (f32::max and min drop a NaN operand).
+        let first = (self.v - extent - 0.5).ceil().max(0.0);
+        let last = (self.v + extent - 0.5).floor().min(height as f32 - 1.0);
+        (first <= last).then_some((first as u32 / TILE, last as u32 / TILE))
+    }
+
+    /// The first and last pixel columns of each row of tile row `ty` whose centre the ellipse
+    /// spans (first = +inf, last = -1 where none; rows below the image have none). One SIMD
+    /// row, a lane per image row.
     #[inline(always)]
-    pub fn row_mask(&self, y0: f32, x_lo: f32, x_hi: f32) -> u32 {
-        let meets: [bool; TILE as usize] = std::array::from_fn(|r| {
-            let dy = (y0 + r as f32) - self.v;
+    fn columns(&self, ty: u32, width: u32, height: u32) -> (Lanes, Lanes) {
+        let mut first = [0.0f32; LANES];
+        let mut last = [0.0f32; LANES];
+        let rows_inside = height.saturating_sub(ty * TILE);
+        for r in 0..LANES {
+            let dy = (ty * TILE + r as u32) as f32 + 0.5 - self.v;
             let room = self.reach - dy * dy;
             let half = (room.max(0.0) * self.span).sqrt() + SPAN_SLACK;
             let centre = self.u + self.slope * dy;
-            // NaN (a culled or degenerate entry) fails every compare.
-            room >= 0.0 && centre + half >= x_lo && centre - half <= x_hi
-        });
-        meets
-            .iter()
-            .enumerate()
-            .fold(0, |mask, (r, &m)| mask | (u32::from(m) << r))
-    }
-}
-
-/// Minimum of a q² + 2 b q t + c t² over t in [lo, hi] for fixed q (c > 0).
-fn edge_minimum(q: f32, a: f32, b: f32, c: f32, lo: f32, hi: f32) -> f32 {
-    let t = (-b * q / c).max(lo).min(hi);
-    a * q * q + 2.0 * b * q * t + c * t * t
-}
-
-/// Whether the 1/255 ellipse of `s` (level `level`) reaches a pixel centre of tile (tx, ty),
-/// with tile_test.wgsl's margin for f32 rounding.
-#[inline(always)]
-fn meets_tile(s: &Splat, level: f32, tx: u32, ty: u32) -> bool {
-    let tile = TILE as f32;
-    let (ux, uy) = (s.u, s.v);
-    let (cx, cy) = (tx as f32 * tile, ty as f32 * tile);
-    let lo = [cx + 0.5 - ux, cy + 0.5 - uy];
-    let hi = [cx + tile - 0.5 - ux, cy + tile - 0.5 - uy];
-    let (a, b, c) = (s.a, s.b, s.c);
-    let mut least = 0.0f32;
-    if lo[0] > 0.0 || lo[1] > 0.0 || hi[0] < 0.0 || hi[1] < 0.0 {
-        least = edge_minimum(lo[0], a, b, c, lo[1], hi[1])
-            .min(edge_minimum(hi[0], a, b, c, lo[1], hi[1]))
-            .min(
-                edge_minimum(lo[1], c, b, a, lo[0], hi[0])
-                    .min(edge_minimum(hi[1], c, b, a, lo[0], hi[0])),
-            );
-    }
-    let reach = [lo[0].abs().max(hi[0].abs()), lo[1].abs().max(hi[1].abs())];
-    let terms =
-        a * reach[0] * reach[0] + 2.0 * b.abs() * reach[0] * reach[1] + c * reach[1] * reach[1];
-    let position = ux.abs() + uy.abs() + cx + cy + 2.0 * tile;
-    let margin = 1e-5 * (terms + 16.0 * position) + 1e-3;
-    // NaN counts as reaching, as in tile_test.wgsl.
-    least.partial_cmp(&(level + margin)) != Some(std::cmp::Ordering::Greater)
-}
-
-/// Tiles [x0, x1) x [y0, y1) holding a pixel centre in the Gaussian's per-axis 1/255 box
-/// (project.wgsl), or None.
-#[inline(always)]
-fn tile_rect(p: &Projection, level: f32, tiles: [u32; 2]) -> Option<[u32; 4]> {
-    let extent = [
-        (level * p.cov.x).sqrt() + 1.0,
-        (level * p.cov.z).sqrt() + 1.0,
-    ];
-    let centre = [p.mean2d.x, p.mean2d.y];
-    let tile = TILE as f32;
-    let mut rect = [0u32; 4];
-    for axis in 0..2 {
-        let (lo, hi) = (centre[axis] - extent[axis], centre[axis] + extent[axis]);
-        if !(lo.is_finite() && hi.is_finite()) {
-            return None;
+            let lo = (centre - half - 0.5).ceil().max(0.0);
+            let hi = (centre + half - 0.5).floor().min(width as f32 - 1.0);
+            // NaN room fails the compare: no columns.
+            let meets = room >= 0.0 && (r as u32) < rows_inside;
+            first[r] = if meets { lo } else { f32::INFINITY };
+            last[r] = if meets { hi } else { -1.0 };
         }
-        let first = (((lo - 0.5).ceil() + 0.5) / tile).floor();
-        let last = (((hi - 0.5).floor() + 0.5) / tile).floor();
-        let end = tiles[axis] as f32 - 1.0;
-        if last < first || last < 0.0 || first > end {
-            return None;
-        }
-        rect[axis] = first.max(0.0) as u32;
-        rect[axis + 2] = last.min(end) as u32 + 1;
+        (first, last)
     }
-    Some(rect)
+
+    /// Appends to `out` every (tile, rows) pair: the tiles (in increasing order) with a row
+    /// whose pixel centres the ellipse spans, and the mask of those rows.
+    #[inline(always)]
+    fn pairs(&self, grid: Grid, out: &mut Vec<[u32; 2]>) {
+        let Some((ty0, ty1)) = self.tile_rows(grid.height) else {
+            return;
+        };
+        let tile = TILE as f32;
+        let bits: [u32; LANES] = array(|r| 1 << r);
+        for ty in ty0..=ty1 {
+            let (first, last) = self.columns(ty, grid.width, grid.height);
+            let lo = first.iter().copied().fold(f32::INFINITY, f32::min);
+            let hi = last.iter().copied().fold(-1.0, f32::max);
+            if lo > hi {
+                continue;
+            }
+            for tx in (lo / tile) as u32..=(hi / tile) as u32 {
+                let (x0, x1) = (tx as f32 * tile, tx as f32 * tile + (tile - 1.0));
+                let meets: [u32; LANES] =
+                    array(|r| mask(first[r] <= x1) & mask(last[r] >= x0) & bits[r]);
+                let rows = meets.iter().fold(0, |m, &b| m | b);
+                if rows != 0 {
+                    out.push([ty * grid.tiles_x + tx, rows]);
+                }
+            }
+        }
+    }
 }
 
-/// Every tile's list, and where each pair went.
+/// Every tile's list, where each pair went, and what the backward needs of each Gaussian.
 pub(super) struct Bins {
     pub tiles_x: u32,
     pub tiles_y: u32,
-    /// Blend data of every Gaussian (by index; zero for culled ones).
-    pub splats: Vec<Splat>,
-    /// Tile t's list is `entries[tile_offsets[t]..tile_offsets[t + 1]]` (Gaussian indices in
-    /// depth order).
+    pub channels: usize,
+    /// Tile t's list is `entries[tile_offsets[t]..tile_offsets[t + 1]]`, in depth order, and
+    /// `entry_features` holds the features of each entry (entries x channels).
     pub tile_offsets: Vec<u32>,
-    pub entries: Vec<u32>,
+    pub entries: Vec<Entry>,
+    pub entry_features: Vec<f32>,
     /// Gaussian g's pairs are numbered `pair_offsets[g]..pair_offsets[g + 1]` (Gaussian-major,
-    /// in increasing tile order), and the list entry at `entries[e]` is pair `entry_pairs[e]`:
-    /// the backward writes each pair's gradient record at its pair number, so that a
-    /// Gaussian's records are contiguous when they are summed.
+    /// in increasing tile order), and list entry e is pair `entry_pairs[e]`: the backward
+    /// writes each pair's gradient record at its pair number, so that a Gaussian's records are
+    /// contiguous when they are summed.
     pub pair_offsets: Vec<u32>,
     pub entry_pairs: Vec<u32>,
+    /// The prepared projections of Gaussians 8b..8b + 8 in block b.
+    pub prepared: Vec<Prepared>,
+    /// Gaussians.
+    pub len: usize,
 }
 
 impl Bins {
@@ -171,105 +179,98 @@ impl Bins {
     pub fn pairs_of(&self, g: usize) -> std::ops::Range<usize> {
         self.pair_offsets[g] as usize..self.pair_offsets[g + 1] as usize
     }
+
+    /// Bytes held by the lists and the per-Gaussian arrays.
+    pub fn bytes(&self) -> usize {
+        use std::mem::size_of;
+        self.entries.len() * (size_of::<Entry>() + size_of::<u32>())
+            + self.entry_features.len() * size_of::<f32>()
+            + (self.tile_offsets.len() + self.pair_offsets.len()) * size_of::<u32>()
+            + self.prepared.len() * size_of::<Prepared>()
+    }
 }
 
-/// Splits `values` into consecutive pieces of the given lengths.
-fn split_lengths<T>(mut values: &mut [T], lengths: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
-    let mut pieces = Vec::new();
-    for len in lengths {
-        let (head, tail) = values.split_at_mut(len);
-        pieces.push(head);
-        values = tail;
-    }
-    pieces
+/// The image's tile grid and size, for binning.
+#[derive(Clone, Copy)]
+struct Grid {
+    tiles_x: u32,
+    width: u32,
+    height: u32,
 }
 
-/// What binning keeps of a projected Gaussian: its blend data, and what the tile test needs.
-#[derive(Debug, Clone, Copy, Default)]
-struct Binned {
-    splat: Splat,
-    /// The unwidened 1/255 level, and the tile rectangle (x0, y0, x1, y1).
-    level: f32,
-    rect: [u32; 4],
-    /// Tiles of the rectangle the ellipse meets (0 when culled).
-    count: u32,
-    /// Which tiles of the rectangle (row-major bits) it meets, for rectangles of up to 64
-    /// tiles (larger ones are tested again when their pairs are written).
-    met: u64,
-}
-
-impl Binned {
-    /// The tiles of its rectangle, row-major.
-    fn rect_tiles(&self) -> impl Iterator<Item = (u32, u32)> {
-        let r = self.rect;
-        (r[1]..r[3]).flat_map(move |ty| (r[0]..r[2]).map(move |tx| (tx, ty)))
-    }
-
-    fn area(&self) -> u32 {
-        (self.rect[2] - self.rect[0]) * (self.rect[3] - self.rect[1])
-    }
-
-    /// Runs the tile test (tile_test.wgsl) on the rectangle; a one-tile rectangle needs none
-    /// (the blend tests pixels).
-    fn test_tiles(&mut self) {
-        if self.area() == 1 {
-            (self.count, self.met) = (1, 1);
-        } else if self.area() <= 64 {
-            self.met = 0;
-            for (bit, (tx, ty)) in self.rect_tiles().enumerate() {
-                if meets_tile(&self.splat, self.level, tx, ty) {
-                    self.met |= 1 << bit;
-                }
-            }
-            self.count = self.met.count_ones();
-        } else {
-            let met = self
-                .rect_tiles()
-                .filter(|&(tx, ty)| meets_tile(&self.splat, self.level, tx, ty));
-            self.count = met.count() as u32;
-        }
-    }
-
-    /// The tiles it meets, row-major.
-    fn tiles(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
-        let small = self.area() <= 64;
-        self.rect_tiles()
-            .enumerate()
-            .filter_map(move |(bit, (tx, ty))| {
-                let met = if small {
-                    self.met & (1 << bit) != 0
-                } else {
-                    meets_tile(&self.splat, self.level, tx, ty)
-                };
-                met.then_some((tx, ty))
-            })
-    }
+/// Per-Gaussian outputs of binning for a run of Gaussians.
+struct Chunk<'a> {
+    /// Blocks of eight Gaussians.
+    prepared: &'a mut [Prepared],
+    splats: &'a mut [Entry],
+    /// Pairs of each Gaussian.
+    counts: &'a mut [u32],
 }
 
 with_avx2!(
-    /// Gaussian `i` projected and tested against the tiles of its rectangle.
-    fn bin_one(gaussians: &Gaussians, i: usize, view: &View, tiles: [u32; 2]) -> Binned =
-        bin_one_body
+    /// Projects Gaussians `first..first + chunk.len()` and returns their pairs, Gaussian by
+    /// Gaussian.
+    fn bin_chunk(gaussians: &Gaussians, first: usize, chunk: Chunk, view: &View, grid: Grid) -> Vec<[u32; 2]> =
+        bin_chunk_body
 );
 
 #[inline(always)]
-fn bin_one_body(gaussians: &Gaussians, i: usize, view: &View, tiles: [u32; 2]) -> Binned {
-    let Some(p) = project(gaussians, i, view) else {
-        return Binned::default();
-    };
-    let level = p.level();
-    let Some(rect) = tile_rect(&p, level, tiles) else {
-        return Binned::default();
-    };
-    let mut b = Binned {
-        splat: Splat::new(&p),
-        level,
-        rect,
-        count: 0,
-        met: 0,
-    };
-    b.test_tiles();
-    b
+fn bin_chunk_body(
+    gaussians: &Gaussians,
+    first: usize,
+    chunk: Chunk,
+    view: &View,
+    grid: Grid,
+) -> Vec<[u32; 2]> {
+    let mut pairs = Vec::with_capacity(2 * chunk.counts.len());
+    let blocks = chunk
+        .prepared
+        .iter_mut()
+        .zip(chunk.splats.chunks_mut(BLOCK))
+        .zip(chunk.counts.chunks_mut(BLOCK));
+    for (b, ((prepared, splats), counts)) in blocks.enumerate() {
+        *prepared = Prepared::new(gaussians, first + b * BLOCK, view);
+        let p = prepared.project(view);
+        for (i, (splat, count)) in splats.iter_mut().zip(counts.iter_mut()).enumerate() {
+            if p.valid[i] == 0 {
+                continue;
+            }
+            let screen = p.screen(i);
+            let before = pairs.len();
+            Footprint::new(&screen).pairs(grid, &mut pairs);
+            *count = (pairs.len() - before) as u32;
+            *splat = Entry::new(&screen);
+        }
+    }
+    pairs
+}
+
+/// `keys` (depth bits << 32 | index, in index order) sorted by depth, ties in index order: a
+/// stable least-significant-digit radix sort of the depth bits, a byte per pass (passes where
+/// every key has the same byte are skipped). z > 0, so its bits order like the floats.
+fn depth_order(mut keys: Vec<u64>) -> Vec<u64> {
+    let mut spare = vec![0u64; keys.len()];
+    for shift in [32, 40, 48, 56] {
+        let digit = |key: u64| (key >> shift) as usize & 0xff;
+        let mut offsets = [0usize; 256];
+        for &key in &keys {
+            offsets[digit(key)] += 1;
+        }
+        if offsets.contains(&keys.len()) {
+            continue;
+        }
+        let mut total = 0;
+        for slot in offsets.iter_mut() {
+            (*slot, total) = (total, total + *slot);
+        }
+        for &key in &keys {
+            let d = digit(key);
+            spare[offsets[d]] = key;
+            offsets[d] += 1;
+        }
+        std::mem::swap(&mut keys, &mut spare);
+    }
+    keys
 }
 
 /// Projects and bins `gaussians`; call inside the executor's thread pool.
@@ -278,67 +279,109 @@ fn bin_one_body(gaussians: &Gaussians, i: usize, view: &View, tiles: [u32; 2]) -
 /// final scatter of the pairs into the tile lists walks the Gaussians in depth order.
 pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     let view = View::new(camera);
-    let tiles = [camera.width.div_ceil(TILE), camera.height.div_ceil(TILE)];
+    let (width, height) = (camera.width, camera.height);
+    let tiles = [width.div_ceil(TILE), height.div_ceil(TILE)];
+    let grid = Grid {
+        tiles_x: tiles[0],
+        width,
+        height,
+    };
     let n = gaussians.len();
-    let binned: Vec<Binned> = (0..n)
-        .into_par_iter()
-        .map(|i| bin_one(gaussians, i, &view, tiles))
-        .collect();
-
-    // The tiles of each Gaussian, in index order.
-    let mut pair_offsets = vec![0u32; n + 1];
-    for (i, b) in binned.iter().enumerate() {
-        pair_offsets[i + 1] = pair_offsets[i] + b.count;
-    }
-    let mut tile_ids = vec![0u32; pair_offsets[n] as usize];
-    split_lengths(&mut tile_ids, binned.iter().map(|b| b.count as usize))
-        .into_par_iter()
-        .zip(binned.par_iter())
-        .for_each(|(out, b)| {
-            for (slot, (tx, ty)) in out.iter_mut().zip(b.tiles()) {
-                *slot = ty * tiles[0] + tx;
-            }
-        });
-
-    // Depth order of the Gaussians with pairs; z > 0, so its bits order like the floats, and
-    // the index breaks ties.
-    let mut by_depth: Vec<u64> = binned
-        .iter()
+    let channels = gaussians.channels;
+    let mut prepared = vec![Prepared::default(); n.div_ceil(BLOCK)];
+    let mut splats = vec![Entry::default(); n];
+    let mut counts = vec![0u32; n];
+    // Chunks of Gaussians: few enough for little overhead, enough to balance the threads.
+    let chunk = 128 * BLOCK;
+    let pairs: Vec<[u32; 2]> = prepared
+        .par_chunks_mut(chunk / BLOCK)
+        .zip(splats.par_chunks_mut(chunk))
+        .zip(counts.par_chunks_mut(chunk))
         .enumerate()
-        .filter(|(_, b)| b.count > 0)
-        .map(|(i, b)| (u64::from(b.splat.z.to_bits()) << 32) | i as u64)
-        .collect();
-    by_depth.par_sort_unstable();
+        .map(|(c, ((prepared, splats), counts))| {
+            let out = Chunk {
+                prepared,
+                splats,
+                counts,
+            };
+            bin_chunk(gaussians, c * chunk, out, &view, grid)
+        })
+        .collect::<Vec<_>>()
+        .concat();
+    let mut pair_offsets = vec![0u32; n + 1];
+    for (i, &count) in counts.iter().enumerate() {
+        pair_offsets[i + 1] = pair_offsets[i] + count;
+    }
+
+    // Depth order of the Gaussians with pairs, ties by index.
+    let by_depth = depth_order(
+        splats
+            .iter()
+            .zip(&counts)
+            .enumerate()
+            .filter(|(_, (_, &count))| count > 0)
+            .map(|(i, (s, _))| (u64::from(s.z.to_bits()) << 32) | i as u64)
+            .collect(),
+    );
 
     // Counting sort of the pairs by tile, fed in depth order, so every list is in depth order.
     let tile_count = (tiles[0] * tiles[1]) as usize;
     let mut tile_offsets = vec![0u32; tile_count + 1];
-    for &t in &tile_ids {
+    for &[t, _] in &pairs {
         tile_offsets[t as usize + 1] += 1;
     }
     for t in 0..tile_count {
         tile_offsets[t + 1] += tile_offsets[t];
     }
     let mut cursor = tile_offsets[..tile_count].to_vec();
-    let mut entries = vec![0u32; tile_ids.len()];
-    let mut entry_pairs = vec![0u32; tile_ids.len()];
+    let mut entries = vec![Entry::default(); pairs.len()];
+    let mut entry_features = vec![0.0f32; pairs.len() * channels];
+    let mut entry_pairs = vec![0u32; pairs.len()];
     for &key in &by_depth {
-        let g = key as u32;
-        let pairs = pair_offsets[g as usize] as usize..pair_offsets[g as usize + 1] as usize;
-        for pair in pairs {
-            let t = tile_ids[pair] as usize;
-            entries[cursor[t] as usize] = g;
-            entry_pairs[cursor[t] as usize] = pair as u32;
-            cursor[t] += 1;
+        let g = key as u32 as usize;
+        let features = &gaussians.features[g * channels..(g + 1) * channels];
+        for pair in pair_offsets[g] as usize..pair_offsets[g + 1] as usize {
+            let [t, rows] = pairs[pair];
+            let e = cursor[t as usize] as usize;
+            cursor[t as usize] += 1;
+            entries[e] = Entry { rows, ..splats[g] };
+            entry_pairs[e] = pair as u32;
+            entry_features[e * channels..(e + 1) * channels].copy_from_slice(features);
         }
     }
     Bins {
         tiles_x: tiles[0],
         tiles_y: tiles[1],
-        splats: binned.iter().map(|b| b.splat).collect(),
+        channels,
         tile_offsets,
         entries,
+        entry_features,
         pair_offsets,
         entry_pairs,
+        prepared,
+        len: n,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// The radix sort orders like a comparison sort of (depth, index), ties included.
+    #[test]
+    fn depth_order_matches_sort() {
+        let mut rng = fastrand::Rng::with_seed(5);
+        let depths = [0.01f32, 0.5, 1.0, 1.0, 3.25, 7.0, 1e4];
+        let keys: Vec<u64> = (0..5000u64)
+            .map(|i| {
+                let z = if rng.bool() {
+                    depths[rng.usize(..depths.len())]
+                } else {
+                    rng.f32() * 100.0 + 0.01
+                };
+                (u64::from(z.to_bits()) << 32) | i
+            })
+            .collect();
+        let mut want = keys.clone();
+        want.sort_unstable();
+        assert_eq!(super::depth_order(keys), want);
     }
 }

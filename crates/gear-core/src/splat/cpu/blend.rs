@@ -1,16 +1,15 @@
-//! The forward blend of the CPU executor: bands of TILE image rows in parallel, each tile of a
-//! band gathers its depth-ordered list once, then every pixel row of the tile (eight pixels,
-//! one SIMD row) walks the list front to back with the contract's guards. Before any
-//! exponential a row asks the entry whether its 1/255 ellipse spans one of the row's pixel
-//! centres ([`Splat::meets_row`]), and the walk stops once all eight pixels have stopped.
+//! The forward blend of the CPU executor: bands of TILE image rows in parallel; every pixel
+//! row of a tile (eight pixels, one SIMD row) walks the tile's depth-ordered list front to back with the contract's guards. An entry is evaluated
+//! only on the rows where binning found its 1/255 ellipse spanning a pixel centre, and the walk
+//! stops once all eight pixels of every row have stopped.
 
 // Lane loops index several [f32; 8] arrays in step: the form the compiler vectorises.
 #![allow(clippy::needless_range_loop)]
 
 use rayon::prelude::*;
 
-use super::bins::{Bins, Splat};
-use super::lanes::{evaluate, with_avx2, Lanes, LANES};
+use super::bins::Bins;
+use super::lanes::{array, evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
 use super::TILE;
 use crate::splat::constants::MIN_TRANSMITTANCE;
 
@@ -40,36 +39,8 @@ impl BlendCounts {
     }
 }
 
-/// A tile's list gathered contiguously: blend data and features of each entry.
-pub(super) struct TileList {
-    pub splats: Vec<Splat>,
-    pub features: Vec<f32>,
-}
-
-impl TileList {
-    pub fn new() -> Self {
-        TileList {
-            splats: Vec::new(),
-            features: Vec::new(),
-        }
-    }
-
-    pub fn gather(&mut self, bins: &Bins, tile: usize, features: &[f32], channels: usize) {
-        let entries = &bins.entries[bins.range(tile)];
-        self.splats.clear();
-        self.splats
-            .extend(entries.iter().map(|&g| bins.splats[g as usize]));
-        self.features.clear();
-        for &g in entries {
-            let g = g as usize;
-            self.features
-                .extend_from_slice(&features[g * channels..(g + 1) * channels]);
-        }
-    }
-}
-
 /// Where a pixel row of a tile lies.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 pub(super) struct Row {
     /// Pixels inside the image (0 for a row below it, else 1..=8).
     pub len: usize,
@@ -87,44 +58,13 @@ impl Row {
                 0
             },
             cy: y as f32 + 0.5,
-            xs: std::array::from_fn(|i| x0 as f32 + 0.5 + i as f32),
+            xs: array(|i| x0 as f32 + 0.5 + i as f32),
         }
     }
 
     /// The TILE rows of tile (tx, ty).
     pub fn of_tile(tx: u32, ty: u32, width: u32, height: u32) -> [Row; TILE as usize] {
-        std::array::from_fn(|r| Row::new(tx * TILE, ty * TILE + r as u32, width, height))
-    }
-}
-
-/// The row test of a tile's rows: bit r of [`RowTest::rows`] is set where entry `s` can reach a
-/// pixel of row r (rows below the image are never set).
-#[derive(Debug, Clone, Copy)]
-pub(super) struct RowTest {
-    y0: f32,
-    x_lo: f32,
-    x_hi: f32,
-    /// Rows inside the image.
-    inside: u32,
-}
-
-impl RowTest {
-    pub fn new(rows: &[Row; TILE as usize]) -> Self {
-        let row = &rows[0];
-        RowTest {
-            y0: row.cy,
-            x_lo: row.xs[0],
-            x_hi: row.xs[row.len.max(1) - 1],
-            inside: rows
-                .iter()
-                .enumerate()
-                .fold(0, |m, (r, row)| m | (u32::from(row.len > 0) << r)),
-        }
-    }
-
-    #[inline(always)]
-    pub fn rows(&self, s: &Splat) -> u32 {
-        s.row_mask(self.y0, self.x_lo, self.x_hi) & self.inside
+        array(|r| Row::new(tx * TILE, ty * TILE + r as u32, width, height))
     }
 }
 
@@ -140,7 +80,6 @@ struct BandImages<'a> {
 /// Inputs of the blend that every band shares.
 pub(super) struct Scene<'a> {
     pub bins: &'a Bins,
-    pub features: &'a [f32],
     pub channels: usize,
     pub width: u32,
     pub height: u32,
@@ -190,66 +129,73 @@ with_avx2!(
 #[inline(always)]
 fn blend_band_body(scene: &Scene, band: u32, mut out: BandImages) -> BlendCounts {
     let bins = scene.bins;
-    let mut list = TileList::new();
     let mut acc = vec![[0.0f32; LANES]; TILE as usize * scene.channels];
     let mut counts = BlendCounts::default();
     for tx in 0..bins.tiles_x {
         let tile = (band * bins.tiles_x + tx) as usize;
-        list.gather(bins, tile, scene.features, scene.channels);
         let rows = Row::of_tile(tx, band, scene.width, scene.height);
-        let start = bins.tile_offsets[tile];
         counts = counts.add(blend_tile(
-            scene, &list, start, &rows, &mut acc, tx, &mut out,
+            scene,
+            bins.range(tile),
+            &rows,
+            &mut acc,
+            tx,
+            &mut out,
         ));
     }
     counts
 }
 
 /// A pixel row's blend state.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Default)]
 struct RowState {
     t: Lanes,
     depth: Lanes,
     consumed: [u32; LANES],
-    /// Pixels still blending.
-    open: [bool; LANES],
+    /// Pixels still blending (all ones).
+    open: Mask,
     /// Blended entries per pixel (for the counts).
     blended: [u32; LANES],
 }
 
-/// Blends one tile's list front to back into its rows and stores their pixels. The list is
-/// walked once for all rows; an entry visits only the rows its ellipse spans (a bit mask of
-/// the rows still blending), so no row pays a branch for an entry that misses it.
+/// Blends one tile's list (entries `range`) front to back into its rows and stores their
+/// pixels. The list is walked once for all rows; an entry visits only the rows its ellipse
+/// spans that are still blending (a bit mask), so no row pays a branch for an entry that
+/// misses it.
 #[inline(always)]
 fn blend_tile(
     scene: &Scene,
-    list: &TileList,
-    start: u32,
+    range: std::ops::Range<usize>,
     rows: &[Row; TILE as usize],
     acc: &mut [Lanes],
     tx: u32,
     out: &mut BandImages,
 ) -> BlendCounts {
     let channels = scene.channels;
-    let mut state: [RowState; TILE as usize] = std::array::from_fn(|r| RowState {
+    let start = range.start as u32;
+    let entries = &scene.bins.entries[range.clone()];
+    let features = &scene.bins.entry_features[range.start * channels..range.end * channels];
+    let mut state: [RowState; TILE as usize] = array(|r| RowState {
         t: [1.0; LANES],
         depth: [0.0; LANES],
         consumed: [start; LANES],
-        open: std::array::from_fn(|i| i < rows[r].len),
+        open: array(|i| mask(i < rows[r].len)),
         blended: [0; LANES],
     });
-    let test = RowTest::new(rows);
     // Rows with a pixel still blending.
-    let mut live = test.inside;
+    let mut live = rows
+        .iter()
+        .enumerate()
+        .fold(0, |m, (r, row)| m | (u32::from(row.len > 0) << r));
     let mut evaluations = 0u64;
     acc.fill([0.0; LANES]);
-    for (j, s) in list.splats.iter().enumerate() {
+    for (j, s) in entries.iter().enumerate() {
         if live == 0 {
             break;
         }
         let next_consumed = start + j as u32 + 1;
-        let f = &list.features[j * channels..(j + 1) * channels];
-        let mut visit = test.rows(s) & live;
+        let f = &features[j * channels..(j + 1) * channels];
+        let mut visit = s.rows & live;
         while visit != 0 {
             let r = visit.trailing_zeros() as usize;
             visit &= visit - 1;
@@ -260,16 +206,15 @@ fn blend_tile(
             for i in 0..LANES {
                 let next = st.t[i] * (1.0 - e.alpha[i]);
                 let hit = st.open[i] & e.passes[i];
-                let stop = hit & (next < MIN_TRANSMITTANCE as f32);
+                let stop = hit & mask(next < MIN_TRANSMITTANCE as f32);
                 let blend = hit & !stop;
                 st.open[i] &= !stop;
-                st.blended[i] += u32::from(blend);
-                // Select, then multiply: a product inside the branch would not vectorise.
-                w[i] = e.alpha[i] * if blend { st.t[i] } else { 0.0 };
-                st.t[i] = if blend { next } else { st.t[i] };
-                st.consumed[i] = if blend { next_consumed } else { st.consumed[i] };
+                st.blended[i] += blend & 1;
+                w[i] = masked(e.alpha[i] * st.t[i], blend);
+                st.t[i] = select(blend, next, st.t[i]);
+                st.consumed[i] = (next_consumed & blend) | (st.consumed[i] & !blend);
             }
-            if !st.open.iter().any(|&o| o) {
+            if st.open.iter().all(|&o| o == 0) {
                 live &= !(1 << r);
             }
             for (a, &fc) in acc[r * channels..(r + 1) * channels].iter_mut().zip(f) {
@@ -278,9 +223,12 @@ fn blend_tile(
                 }
             }
             if scene.depth {
+                // A whole-row copy: updated in place, the lanes would be scalar code.
+                let mut depth = st.depth;
                 for i in 0..LANES {
-                    st.depth[i] += w[i] * s.z;
+                    depth[i] += w[i] * s.z;
                 }
+                st.depth = depth;
             }
         }
     }

@@ -10,8 +10,8 @@
 
 use rayon::prelude::*;
 
-use super::blend::{PixelState, Row, RowTest, Scene, TileList};
-use super::lanes::{evaluate, with_avx2, Lanes, LANES};
+use super::blend::{PixelState, Row, Scene};
+use super::lanes::{array, evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
 use super::TILE;
 use crate::splat::constants::MAX_ALPHA;
 use crate::splat::types::OutputGradients;
@@ -86,7 +86,6 @@ with_avx2!(
 #[inline(always)]
 fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &Records) {
     let bins = scene.bins;
-    let mut list = TileList::new();
     let mut buffers = TileBuffers::new(scene.channels);
     for tx in 0..bins.tiles_x {
         let tile = (band * bins.tiles_x + tx) as usize;
@@ -94,18 +93,8 @@ fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &Records
         if range.is_empty() {
             continue;
         }
-        list.gather(bins, tile, scene.features, scene.channels);
         let rows = Row::of_tile(tx, band, scene.width, scene.height);
-        replay_tile(
-            scene,
-            replay,
-            &list,
-            range.start as u32,
-            &rows,
-            tx,
-            &mut buffers,
-            records,
-        );
+        replay_tile(scene, replay, range, &rows, tx, &mut buffers, records);
     }
 }
 
@@ -142,18 +131,6 @@ impl TileBuffers {
             sums: vec![[0.0; LANES]; GEOMETRY + channels],
         }
     }
-}
-
-/// All ones where `condition` holds, else zero.
-#[inline(always)]
-fn mask(condition: bool) -> u32 {
-    u32::from(condition).wrapping_neg()
-}
-
-/// `value` where `mask` is all ones, +0 where it is zero.
-#[inline(always)]
-fn masked(value: f32, mask: u32) -> f32 {
-    f32::from_bits(value.to_bits() & mask)
 }
 
 /// The eight lanes summed as a fixed tree (vectorises; the same order every time).
@@ -207,16 +184,14 @@ fn load_row(
     st
 }
 
-/// Replays a tile's list back to front for all its rows at once (from the longest consumed
-/// prefix; an entry visits only the rows its ellipse spans and that consumed it), adding each
-/// row's contributions to the entry's record, rows in increasing order.
-#[allow(clippy::too_many_arguments)]
+/// Replays a tile's list (entries `range`) back to front for all its rows at once (from the
+/// longest consumed prefix; an entry visits only the rows its ellipse spans and that consumed
+/// it), adding each row's contributions to the entry's record, rows in increasing order.
 #[inline(always)]
 fn replay_tile(
     scene: &Scene,
     replay: &Replay,
-    list: &TileList,
-    start: u32,
+    range: std::ops::Range<usize>,
     rows: &[Row; TILE as usize],
     tx: u32,
     buffers: &mut TileBuffers,
@@ -225,7 +200,8 @@ fn replay_tile(
     let bins = scene.bins;
     let channels = scene.channels;
     let stride = replay.stride(channels);
-    let mut state: [RowState; TILE as usize] = std::array::from_fn(|r| {
+    let start = range.start as u32;
+    let mut state: [RowState; TILE as usize] = array(|r| {
         let first = ((rows[r].cy - 0.5) as u32 * scene.width + tx * TILE) as usize;
         if rows[r].len == 0 {
             RowState {
@@ -237,31 +213,26 @@ fn replay_tile(
             load_row(scene, replay, &rows[r], r, first, start, buffers)
         }
     });
-    let ends: [u32; TILE as usize] = std::array::from_fn(|r| state[r].last);
+    let ends: [u32; TILE as usize] = array(|r| state[r].last);
     let last = ends.iter().copied().max().unwrap();
-    let test = RowTest::new(rows);
     let zero = [0.0f32; LANES];
     for k in (start..last).rev() {
-        let j = (k - start) as usize;
-        let s = &list.splats[j];
-        let f = &list.features[j * channels..(j + 1) * channels];
+        let s = &bins.entries[k as usize];
+        let f = &bins.entry_features[k as usize * channels..(k as usize + 1) * channels];
         let mut touched = false;
         // Rows whose consumed prefix holds entry k.
         let holding = ends
             .iter()
             .enumerate()
             .fold(0, |m, (r, &end)| m | (u32::from(k < end) << r));
-        let mut visit = test.rows(s) & holding;
+        let mut visit = s.rows & holding;
         while visit != 0 {
             let r = visit.trailing_zeros() as usize;
             visit &= visit - 1;
             let (row, st) = (&rows[r], &mut state[r]);
             let dy = row.cy - s.v;
             let e = evaluate(s, &row.xs, dy);
-            // Lane masks are all-ones or zero u32s, applied with a bitwise and: bool arrays
-            // and per-lane branches would compile to scalar code.
-            let hit: [u32; LANES] =
-                std::array::from_fn(|i| mask(k < st.consumed[i] && e.passes[i]));
+            let hit: Mask = array(|i| mask(k < st.consumed[i]) & e.passes[i]);
             if !hit.iter().any(|&h| h != 0) {
                 continue;
             }
@@ -283,7 +254,7 @@ fn replay_tile(
             }
             // The blended lanes' weights, zero elsewhere: the sums below multiply by them
             // instead of branching per lane, which keeps them vector adds.
-            let w_hit: Lanes = std::array::from_fn(|i| masked(w[i], hit[i]));
+            let w_hit: Lanes = array(|i| masked(w[i], hit[i]));
             let sums = &mut buffers.sums;
             for (c, &fc) in f.iter().enumerate() {
                 // Whole-row copies and one loop per update: the form the compiler keeps in
@@ -306,28 +277,34 @@ fn replay_tile(
                 }
             }
             if scene.depth {
+                // Local copies, as for the features above.
+                let (g, mut behind, mut sum) = (st.grad_depth, st.behind_d, sums[6]);
                 for i in 0..LANES {
-                    grad_a[i] += st.grad_depth[i] * (s.z * t_i[i] - st.behind_d[i] * inv_keep[i]);
-                    sums[6][i] += w_hit[i] * st.grad_depth[i];
-                    st.behind_d[i] += w_hit[i] * s.z;
+                    grad_a[i] += g[i] * (s.z * t_i[i] - behind[i] * inv_keep[i]);
                 }
+                for i in 0..LANES {
+                    sum[i] += w_hit[i] * g[i];
+                }
+                for i in 0..LANES {
+                    behind[i] += w_hit[i] * s.z;
+                }
+                (st.behind_d, sums[6]) = (behind, sum);
             }
             // The 0.999 clamp passes no gradient to opacity and power: dL/dalpha is zeroed on
             // clamped and unblended lanes first (every factor below is finite, so their terms
             // are zeros), then the terms are summed over the lanes term by term (not lane by
             // lane), so that each sum is one vector add.
-            let unclamped: [u32; LANES] =
-                std::array::from_fn(|i| hit[i] & mask(e.raw[i] <= MAX_ALPHA as f32));
-            let grad_a: Lanes = std::array::from_fn(|i| masked(grad_a[i], unclamped[i]));
-            let gp: Lanes = std::array::from_fn(|i| grad_a[i] * e.alpha[i]);
+            let unclamped: Mask = array(|i| hit[i] & mask(e.raw[i] <= MAX_ALPHA as f32));
+            let grad_a: Lanes = array(|i| masked(grad_a[i], unclamped[i]));
+            let gp: Lanes = array(|i| grad_a[i] * e.alpha[i]);
             let dx = &e.dx;
             let terms: [Lanes; 6] = [
-                std::array::from_fn(|i| -0.5 * dx[i] * dx[i] * gp[i]),
-                std::array::from_fn(|i| -dx[i] * dy * gp[i]),
-                std::array::from_fn(|i| -0.5 * dy * dy * gp[i]),
-                std::array::from_fn(|i| (s.a * dx[i] + s.b * dy) * gp[i]),
-                std::array::from_fn(|i| (s.b * dx[i] + s.c * dy) * gp[i]),
-                std::array::from_fn(|i| grad_a[i] * e.gauss[i]),
+                array(|i| -0.5 * dx[i] * dx[i] * gp[i]),
+                array(|i| -dx[i] * dy * gp[i]),
+                array(|i| -0.5 * dy * dy * gp[i]),
+                array(|i| (s.a * dx[i] + s.b * dy) * gp[i]),
+                array(|i| (s.b * dx[i] + s.c * dy) * gp[i]),
+                array(|i| grad_a[i] * e.gauss[i]),
             ];
             // A fixed-size view, so the adds compile to whole-row vector adds.
             let geometry: &mut [Lanes; 6] = (&mut sums[..6]).try_into().unwrap();
@@ -337,7 +314,7 @@ fn replay_tile(
                 }
             }
             for i in 0..LANES {
-                st.t[i] = if hit[i] != 0 { t_i[i] } else { st.t[i] };
+                st.t[i] = select(hit[i], t_i[i], st.t[i]);
             }
         }
         // Each pair's record is written once, its rows summed lane-wise in row order first.

@@ -5,7 +5,7 @@
 // Lane loops index several [f32; 8] arrays in step: the form the compiler vectorises.
 #![allow(clippy::needless_range_loop)]
 
-use super::bins::Splat;
+use super::bins::Entry;
 use crate::splat::constants::{MAX_ALPHA, MIN_ALPHA};
 
 /// Defines `fn $name(args) -> ret` calling `$body` (an `#[inline(always)]` function) compiled
@@ -35,6 +35,38 @@ pub(super) use with_avx2;
 
 pub(super) const LANES: usize = 8;
 pub(super) type Lanes = [f32; LANES];
+/// Per-lane conditions as all-ones-or-zero u32s, applied with bitwise operations: bool arrays
+/// and per-lane branches would compile to scalar code per lane.
+pub(super) type Mask = [u32; LANES];
+
+/// `[f(0), f(1), ...]` as `std::array::from_fn` builds it, but always inlined: from_fn's
+/// element calls stay out-of-line calls, outside the AVX2 code and one per element.
+#[inline(always)]
+pub(super) fn array<T: Copy + Default, const N: usize>(mut f: impl FnMut(usize) -> T) -> [T; N] {
+    let mut out = [T::default(); N];
+    for (i, o) in out.iter_mut().enumerate() {
+        *o = f(i);
+    }
+    out
+}
+
+/// All ones where `condition` holds, else zero.
+#[inline(always)]
+pub(super) fn mask(condition: bool) -> u32 {
+    u32::from(condition).wrapping_neg()
+}
+
+/// `value` where `mask` is all ones, +0 where it is zero.
+#[inline(always)]
+pub(super) fn masked(value: f32, mask: u32) -> f32 {
+    f32::from_bits(value.to_bits() & mask)
+}
+
+/// `a` where `mask` is all ones, else `b`.
+#[inline(always)]
+pub(super) fn select(mask: u32, a: f32, b: f32) -> f32 {
+    f32::from_bits((a.to_bits() & mask) | (b.to_bits() & !mask))
+}
 
 const LOG2E: f32 = std::f32::consts::LOG2_E;
 /// ln 2 split so that n · LN2_HI is exact for the n that occur.
@@ -73,19 +105,20 @@ pub(super) struct Evaluation {
     /// opacity · gauss, and alpha = that clamped to MAX_ALPHA.
     pub raw: Lanes,
     pub alpha: Lanes,
-    /// The contract's per-pixel guards pass: power <= 0 and alpha >= MIN_ALPHA.
-    pub passes: [bool; LANES],
+    /// The contract's per-pixel guards pass (all ones, else zero): power <= 0 and
+    /// alpha >= MIN_ALPHA.
+    pub passes: Mask,
 }
 
 /// Entry `s` at pixel centres x = `xs`, y = v + `dy` (as blend_common.wgsl's evaluate_quad).
 #[inline(always)]
-pub(super) fn evaluate(s: &Splat, xs: &Lanes, dy: f32) -> Evaluation {
+pub(super) fn evaluate(s: &Entry, xs: &Lanes, dy: f32) -> Evaluation {
     let mut e = Evaluation {
         dx: [0.0; LANES],
         gauss: [0.0; LANES],
         raw: [0.0; LANES],
         alpha: [0.0; LANES],
-        passes: [false; LANES],
+        passes: [0; LANES],
     };
     for i in 0..LANES {
         let dx = xs[i] - s.u;
@@ -97,7 +130,7 @@ pub(super) fn evaluate(s: &Splat, xs: &Lanes, dy: f32) -> Evaluation {
         e.gauss[i] = gauss;
         e.raw[i] = raw;
         e.alpha[i] = alpha;
-        e.passes[i] = power <= 0.0 && alpha >= MIN_ALPHA as f32;
+        e.passes[i] = mask(power <= 0.0) & mask(alpha >= MIN_ALPHA as f32);
     }
     e
 }

@@ -2,6 +2,8 @@
 //! (projection, 1/255 tile test, depth-ordered per-tile lists, front-to-back blending with
 //! early termination, and the backward to the five input arrays), run with rayon threads and
 //! eight-pixel SIMD rows. It only evaluates a Gaussian on a pixel row its 1/255 ellipse spans.
+//! The backward borrows nothing from the caller: the forward keeps what it needs (the tile
+//! lists with their features, and each Gaussian's prepared projection).
 //!
 //! The backward uses no atomics and no per-pixel-per-Gaussian buffers: each (tile, Gaussian)
 //! pair gets a gradient record summed by the one thread that owns the tile, then each
@@ -14,6 +16,7 @@ mod blend_backward;
 mod lanes;
 mod pool;
 mod project;
+mod wide;
 
 #[cfg(test)]
 mod tests;
@@ -24,11 +27,12 @@ use rayon::ThreadPool;
 use self::bins::{bin, Bins};
 use self::blend::{blend, PixelState, Scene};
 use self::blend_backward::{blend_backward, Replay, GEOMETRY};
-use self::project::{project, project_backward, InputGradients, View};
+use self::lanes::{array, with_avx2, LANES as BLOCK};
+use self::project::{project_backward, View};
+use self::wide::F8;
 use crate::error::Result;
 use crate::splat::types::{
-    Camera, GaussianGradients, Gaussians, OutputGradients, OwnedGaussians, RenderOptions,
-    RenderOutput,
+    Camera, GaussianGradients, Gaussians, OutputGradients, RenderOptions, RenderOutput,
 };
 
 pub use self::pool::{build_pool, global_pool, thread_count};
@@ -47,14 +51,13 @@ pub struct RasterStats {
     pub evaluations: u64,
     /// Evaluations that were blended into their pixel.
     pub contributions: u64,
-    /// Bytes held by the forward state (inputs copy, lists, pixel state).
+    /// Bytes held by the forward state (lists, prepared projections, pixel state).
     pub state_bytes: u64,
 }
 
-/// What [`backward`] needs from [`forward`]: a copy of the inputs, the lists and the pixel
+/// What [`backward`] needs from [`forward`]: the lists, the prepared projections and the pixel
 /// state.
 pub struct CpuState {
-    gaussians: OwnedGaussians,
     camera: Camera,
     options: RenderOptions,
     bins: Bins,
@@ -66,8 +69,7 @@ impl CpuState {
     fn scene(&self) -> Scene<'_> {
         Scene {
             bins: &self.bins,
-            features: &self.gaussians.features,
-            channels: self.gaussians.channels,
+            channels: self.bins.channels,
             width: self.camera.width,
             height: self.camera.height,
             background: &self.options.background,
@@ -99,7 +101,6 @@ pub fn forward_in(
         let bins = bin(gaussians, camera);
         let scene = Scene {
             bins: &bins,
-            features: gaussians.features,
             channels: gaussians.channels,
             width: camera.width,
             height: camera.height,
@@ -107,15 +108,7 @@ pub fn forward_in(
             depth: options.depth,
         };
         let (features, alpha, depth, pixels, counts) = blend(&scene);
-        let n = gaussians.len();
-        let word = 4u64;
-        let state_bytes = word
-            * ((n * (11 + gaussians.channels)) // inputs copy
-                + n * std::mem::size_of::<bins::Splat>() / 4
-                + bins.tile_offsets.len()
-                + 2 * bins.entries.len() // entries, entry pairs
-                + bins.pair_offsets.len()
-                + 2 * pixels.final_t.len()) as u64;
+        let state_bytes = (bins.bytes() + 8 * pixels.final_t.len()) as u64;
         let stats = RasterStats {
             pairs: bins.pairs() as u64,
             evaluations: counts.evaluations,
@@ -128,7 +121,6 @@ pub fn forward_in(
             depth: options.depth.then_some(depth),
         };
         let state = CpuState {
-            gaussians: OwnedGaussians::from(*gaussians),
             camera: *camera,
             options: options.clone(),
             bins,
@@ -152,9 +144,9 @@ pub fn backward(
 
 /// Bytes a [`backward`] of `state` allocates at its peak (pair records and the outputs).
 pub fn backward_bytes(state: &CpuState, features_grad: bool) -> u64 {
-    let channels = state.gaussians.channels;
+    let channels = state.bins.channels;
     let stride = GEOMETRY + if features_grad { channels } else { 0 };
-    let n = state.gaussians.means.len();
+    let n = state.bins.len;
     4 * (state.bins.pairs() * stride + n * (11 + channels) + n) as u64
 }
 
@@ -165,7 +157,7 @@ pub fn backward_in(
     grads: &OutputGradients<f32>,
     features_grad: bool,
 ) -> Result<GaussianGradients<f32>> {
-    let channels = state.gaussians.channels;
+    let channels = state.bins.channels;
     grads.validate(state.camera.pixels(), channels)?;
     let replay = Replay {
         state: &state.pixels,
@@ -178,58 +170,109 @@ pub fn backward_in(
     })
 }
 
+/// The gradient arrays of a run of Gaussians (a whole number of blocks of eight, but for the
+/// last run).
+struct GradientChunk<'a> {
+    means: &'a mut [[f32; 3]],
+    quats: &'a mut [[f32; 4]],
+    log_scales: &'a mut [[f32; 3]],
+    logits: &'a mut [f32],
+    /// Gaussians x `channels`; no channels without feature gradients.
+    features: &'a mut [f32],
+    channels: usize,
+}
+
 /// Sums each Gaussian's pair records in tile order and chains them through the projection.
 fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGradients<f32> {
-    let gaussians = state.gaussians.view();
-    let n = gaussians.len();
-    let channels = gaussians.channels;
     let bins = &state.bins;
-    let stride = GEOMETRY + if features_grad { channels } else { 0 };
+    let n = bins.len;
+    let channels = if features_grad { bins.channels } else { 0 };
     let view = View::new(&state.camera);
-    let out_channels = if features_grad { channels } else { 0 };
-    // One (unused) column without feature gradients keeps the chunks aligned with Gaussians.
-    let width = out_channels.max(1);
-    let mut features = vec![0.0f32; n * width];
-    let mut geometry = vec![InputGradients::default(); n];
-    // Chunks of whole Gaussians (a zero-width feature row when features are skipped).
-    let chunk = 256;
-    geometry
+    let mut means = vec![[0.0f32; 3]; n];
+    let mut quats = vec![[0.0f32; 4]; n];
+    let mut log_scales = vec![[0.0f32; 3]; n];
+    let mut logits = vec![0.0f32; n];
+    let mut features = vec![0.0f32; n * channels];
+    // Runs of whole blocks; a zero-width feature chunk keeps the zip aligned without features.
+    let chunk = 32 * BLOCK;
+    let feature_chunks: Vec<&mut [f32]> = if channels > 0 {
+        features.chunks_mut(chunk * channels).collect()
+    } else {
+        (0..n.div_ceil(chunk)).map(|_| &mut [][..]).collect()
+    };
+    means
         .par_chunks_mut(chunk)
-        .zip(features.par_chunks_mut(chunk * width))
+        .zip(quats.par_chunks_mut(chunk))
+        .zip(log_scales.par_chunks_mut(chunk))
+        .zip(logits.par_chunks_mut(chunk))
+        .zip(feature_chunks)
         .enumerate()
-        .for_each(|(ci, (geometry, features))| {
-            let mut sums = vec![0.0f32; stride];
-            for (k, out) in geometry.iter_mut().enumerate() {
-                let g = ci * chunk + k;
-                let pairs = bins.pairs_of(g);
-                if pairs.is_empty() {
-                    continue;
-                }
-                // A Gaussian's records are contiguous, in tile order.
-                sums.fill(0.0);
-                for record in records[pairs.start * stride..pairs.end * stride].chunks_exact(stride)
-                {
-                    for (s, v) in sums.iter_mut().zip(record) {
-                        *s += v;
-                    }
-                }
-                let screen: [f32; GEOMETRY] = std::array::from_fn(|q| sums[q]);
-                if let Some(p) = project(&gaussians, g, &view) {
-                    *out = project_backward(&p, &screen, &view);
-                }
-                if out_channels > 0 {
-                    features[k * channels..(k + 1) * channels].copy_from_slice(&sums[GEOMETRY..]);
+        .for_each(|(c, ((((means, quats), log_scales), logits), features))| {
+            let out = GradientChunk {
+                means,
+                quats,
+                log_scales,
+                logits,
+                features,
+                channels,
+            };
+            reduce_chunk(bins, records, &view, c * chunk, out);
+        });
+    GaussianGradients {
+        means,
+        quats,
+        log_scales,
+        opacity_logits: logits,
+        features,
+    }
+}
+
+with_avx2!(
+    /// [`reduce`] of Gaussians `first..` into `out`.
+    fn reduce_chunk(bins: &Bins, records: &[f32], view: &View, first: usize, out: GradientChunk) -> () =
+        reduce_chunk_body
+);
+
+#[inline(always)]
+fn reduce_chunk_body(bins: &Bins, records: &[f32], view: &View, first: usize, out: GradientChunk) {
+    let channels = out.channels;
+    let stride = GEOMETRY + channels;
+    for (k, logits) in out.logits.chunks_mut(BLOCK).enumerate() {
+        let first = first + k * BLOCK;
+        let mut screen = [F8::default(); GEOMETRY];
+        let mut any = false;
+        for (i, g) in (first..first + logits.len()).enumerate() {
+            let pairs = bins.pairs_of(g);
+            any |= !pairs.is_empty();
+            // A Gaussian's records are contiguous, in tile order.
+            let mine = &records[pairs.start * stride..pairs.end * stride];
+            for record in mine.chunks_exact(stride) {
+                for (sum, &v) in screen.iter_mut().zip(record) {
+                    sum.0[i] += v;
                 }
             }
-        });
-    if out_channels == 0 {
-        features = Vec::new();
-    }
-    GaussianGradients {
-        means: geometry.iter().map(|g| g.mean).collect(),
-        quats: geometry.iter().map(|g| g.quat).collect(),
-        log_scales: geometry.iter().map(|g| g.log_scale).collect(),
-        opacity_logits: geometry.iter().map(|g| g.logit).collect(),
-        features,
+            let row = k * BLOCK + i;
+            for c in 0..channels {
+                out.features[row * channels + c] = mine
+                    .chunks_exact(stride)
+                    .map(|r| r[GEOMETRY + c])
+                    .fold(0.0, |s, v| s + v);
+            }
+        }
+        if !any {
+            continue;
+        }
+        let p = bins.prepared[first / BLOCK].project(view);
+        let grads = project_backward(&p, &screen, view);
+        for (i, logit) in logits.iter_mut().enumerate() {
+            if bins.pairs_of(first + i).is_empty() {
+                continue;
+            }
+            let row = k * BLOCK + i;
+            out.means[row] = array(|c| grads.mean[c].0[i]);
+            out.quats[row] = array(|c| grads.quat[c].0[i]);
+            out.log_scales[row] = array(|c| grads.log_scale[c].0[i]);
+            *logit = grads.logit.0[i];
+        }
     }
 }
