@@ -5,6 +5,8 @@ state aligned through an edit (gear.splats.gaussians)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 
@@ -27,10 +29,22 @@ def small_part_mask(g: Gaussians, threshold: int) -> torch.Tensor:
     return small[ids]
 
 
-class Densifier:
-    """Adaptive density control of one set of Gaussians during one stage."""
+def gaussian_budget(config: TrainConfig, cameras: Sequence[Camera]) -> int:
+    """The most Gaussians densification may reach: `max_gaussians` and, when
+    `max_gaussians_per_pixel` is set, that many per pixel of the largest training view."""
+    budget = config.max_gaussians
+    if config.max_gaussians_per_pixel is not None:
+        pixels = max(c.width * c.height for c in cameras)
+        budget = min(budget, max(1, int(config.max_gaussians_per_pixel * pixels)))
+    return budget
 
-    def __init__(self, g: Gaussians) -> None:
+
+class Densifier:
+    """Adaptive density control of one set of Gaussians during one stage, within `budget`
+    Gaussians (None: the config's `max_gaussians`; see gaussian_budget)."""
+
+    def __init__(self, g: Gaussians, budget: int | None = None) -> None:
+        self.budget = budget
         self.reset_stats(len(g))
 
     def reset_stats(self, n: int) -> None:
@@ -78,7 +92,7 @@ class Densifier:
             max_scale = c.prune_max_scale * extent if it > c.opacity_reset_interval else None
             info = self.densify_and_prune(
                 g, c.densify_grad_threshold, extent, c.percent_dense, c.prune_opacity,
-                max_scale, c.max_gaussians, generator,
+                max_scale, c.max_gaussians if self.budget is None else self.budget, generator,
             )
             events.append({"event": "densify", "iteration": it, **info})
         if it > 0 and it % c.opacity_reset_interval == 0 and it < densify_until:

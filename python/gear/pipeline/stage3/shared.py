@@ -14,7 +14,7 @@ from gear.config import TrainConfig
 from gear.geometry import nearest_neighbours
 from gear.kinematics import dq_to_rt, quat_mul, quat_rotate
 from gear.pipeline.common import Stage, TrainView, gaussian_lrs, image_terms
-from gear.splats import Densifier, Gaussians, render
+from gear.splats import Densifier, Gaussians, gaussian_budget, render
 from gear.splats.init import scene_extent
 
 
@@ -108,7 +108,8 @@ class RefineState(Stage):
         self.extent = scene_extent([v.camera for v in self.canonical_views + self.target_views])
         if gaussians.optimizer is None:
             gaussians.setup_optimizer(gaussian_lrs(config, self.extent))
-        self.densifier = Densifier(gaussians)
+        self.densifier = Densifier(
+            gaussians, gaussian_budget(config, [v.camera for v in self.canonical_views]))
         self.motion_optimizer = motion_optimizer(motion, config, self.extent)
         self.total = config.stage3_iterations
         self._neighbours: torch.Tensor | None = None

@@ -1,16 +1,18 @@
-"""The motion-only steps' held model (pose per part by matrix products) against the per-Gaussian
-dual-quaternion pose of gear.kinematics, and the densification statistics against their
-definition."""
+"""What makes training cheaper, against its definition: the motion-only steps' held model
+(pose per part by matrix products) against the per-Gaussian dual-quaternion pose of
+gear.kinematics, the densification statistics, and the per-pixel Gaussian budget."""
 
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from gear.camera import Camera
+from gear.config import make_config
 from gear.kinematics import dq_normalize, pose_parts
 from gear.pipeline.stage3.shared import HeldModel, held_key
-from gear.splats import Densifier, Gaussians
+from gear.splats import Densifier, Gaussians, gaussian_budget
 
 
 def random_gaussians(n: int, parts: int, dtype: torch.dtype = torch.float32) -> Gaussians:
@@ -101,3 +103,30 @@ def test_densify_statistics_are_the_ndc_gradient_norm_of_visible_gaussians():
         assert densifier.grad_count[i] == 2
         assert math.isclose(float(densifier.grad_accum[i]), 2 * math.hypot(du, dv),
                             rel_tol=1e-5)
+
+
+def test_gaussian_budget_per_pixel_of_the_largest_view():
+    small = Camera(world_to_cam=np.eye(4), fx=10.0, fy=10.0, cx=4.0, cy=3.0, width=8, height=6)
+    large = Camera(world_to_cam=np.eye(4), fx=10.0, fy=10.0, cx=8.0, cy=6.0, width=16, height=12)
+    assert gaussian_budget(make_config("fast"), [small, large]) == 1_000_000  # no per-pixel cap
+    capped = make_config("fast", {"max_gaussians_per_pixel": 2.5})
+    assert gaussian_budget(capped, [small, large]) == int(2.5 * 16 * 12)
+    both = make_config("quick", {"max_gaussians_per_pixel": 1000.0})
+    assert gaussian_budget(both, [small]) == both.max_gaussians  # the lower cap wins
+    with pytest.raises(ValueError, match="max_gaussians_per_pixel: must be > 0"):
+        make_config("fast", {"max_gaussians_per_pixel": 0.0})
+
+
+def test_densification_stops_at_the_budget():
+    g = random_gaussians(20, 2)
+    g.params["log_scales"] = torch.full((20, 3), -8.0).requires_grad_(True)  # all clone
+    g.params["opacity"] = torch.full((20,), 3.0).requires_grad_(True)  # none pruned
+    g.setup_optimizer({name: 0.1 for name in g.params})
+    config = make_config("quick")
+    densifier = Densifier(g, budget=26)
+    densifier.grad_accum += 1.0  # every Gaussian far above the threshold
+    densifier.grad_count += 1
+    events = densifier.maintain(g, config.densify_from, config, 1.0, config.densify_until, True,
+                                torch.Generator().manual_seed(0))
+    assert events[0]["event"] == "densify" and events[0]["cloned"] == 6
+    assert len(g) == 26
