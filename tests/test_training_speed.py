@@ -87,6 +87,8 @@ def test_densify_statistics_are_the_ndc_gradient_norm_of_visible_gaussians():
     means = torch.randn(n, 3, generator=gen).requires_grad_(True)
     means.grad = torch.randn(n, 3, generator=gen)
     means.grad[::3] = 0  # not seen by the render
+    with torch.no_grad():
+        means[3] = math.inf  # culled by the render (zero gradient); its norm would be NaN
     densifier = Densifier(g)
     densifier.accumulate(means, camera)
     densifier.accumulate(means, camera)

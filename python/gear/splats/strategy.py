@@ -76,11 +76,12 @@ class Densifier:
         z = (rendered_means.detach() @ rot.T + trans)[:, 2].clamp_min(1e-6)
         gx = g_cam[:, 0] * z / camera.fx * 0.5 * camera.width
         gy = g_cam[:, 1] * z / camera.fy * 0.5 * camera.height
-        # Adding every norm and a 0/1 count, rather than indexing both with the visibility
-        # mask, gives the same sums (an unseen Gaussian's gradient, so its norm, is exactly 0)
-        # at a fraction of the cost.
-        self.grad_accum += torch.sqrt(gx * gx + gy * gy)
-        self.grad_count += (grad != 0).any(dim=1)
+        # Adding a masked norm and a 0/1 count to every Gaussian, rather than indexing both
+        # with the visibility mask, gives the same sums at a fraction of the cost (the mask
+        # also keeps a culled non-finite Gaussian's NaN norm out).
+        visible = (grad != 0).any(dim=1)
+        self.grad_accum += torch.where(visible, torch.sqrt(gx * gx + gy * gy), 0.0)
+        self.grad_count += visible
 
     def maintain(self, g: Gaussians, it: int, config: TrainConfig, extent: float,
                  densify_until: int, allowed: bool, generator: torch.Generator) -> list[dict]:
