@@ -80,6 +80,9 @@ class TrainConfig:
     prune_opacity: float = 0.005
     prune_max_scale: float = 0.1  # fraction of the scene extent
     max_gaussians: int = 1_000_000
+    # Also at most this many per pixel of a training view (None: no such cap); the image
+    # resolution bounds the detail a model can show (docs/training.md, "Performance").
+    max_gaussians_per_pixel: float | None = None
 
     # --- appearance ---
     # Degree (0..3) of the spherical harmonics that make colours view-dependent: 0 = one colour
@@ -145,6 +148,7 @@ RANGES: dict[str, tuple[float, float | None, bool]] = {
     "densify_grad_threshold": _POSITIVE, "stage3_densify_until": _AT_LEAST_0,
     "opacity_reset_interval": _AT_LEAST_1, "percent_dense": _POSITIVE,
     "prune_opacity": _FRACTION, "prune_max_scale": _POSITIVE, "max_gaussians": _AT_LEAST_1,
+    "max_gaussians_per_pixel": _POSITIVE,
     "init_voxel_fraction": _POSITIVE, "init_max_points": _AT_LEAST_1,
     "random_init_points": _AT_LEAST_1, "checkpoint_every": _AT_LEAST_1,
     "log_every": _AT_LEAST_1, "mesh_voxel": _POSITIVE, "mesh_trunc": _POSITIVE,

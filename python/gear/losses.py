@@ -195,5 +195,8 @@ def knn_consistency_loss(logits: torch.Tensor, neighbours: torch.Tensor) -> torc
     if not valid.any():
         return logits.sum() * 0.0
     idx = neighbours.clamp(min=0).long()
-    dist = safe_norm(logits[:, None, :] - logits[idx], dim=-1)
-    return dist[valid].mean()
+    # index_select rather than logits[idx]: the same values, and its backward is a plain
+    # index_add (advanced indexing's accumulating index_put is slower).
+    others = logits.index_select(0, idx.reshape(-1)).reshape(*idx.shape, logits.shape[1])
+    dist = safe_norm(logits[:, None, :] - others, dim=-1)
+    return dist.mean() if bool(valid.all()) else dist[valid].mean()

@@ -13,7 +13,7 @@ from gear.data.scene import STATES
 from gear.losses import opacity_binarisation
 from gear.pipeline.common import Stage, TrainView, check_finite, gaussian_lrs, image_terms, means_lr
 from gear.pipeline.runner import Runner
-from gear.splats import Densifier, Gaussians, render
+from gear.splats import Densifier, Gaussians, gaussian_budget, render
 from gear.splats.init import initial_gaussians, scene_extent
 from gear.splats.sh import add_sh
 
@@ -35,7 +35,7 @@ class ReconstructState(Stage):
         self.extent = scene_extent([v.camera for v in self.views])
         if gaussians.optimizer is None:
             gaussians.setup_optimizer(gaussian_lrs(config, self.extent))
-        self.densifier = Densifier(gaussians)
+        self.densifier = Densifier(gaussians, gaussian_budget(config, [v.camera for v in views]))
         self.total = config.stage1_iterations
 
     def step(self, it: int) -> dict[str, float]:

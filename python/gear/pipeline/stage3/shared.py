@@ -12,9 +12,9 @@ import torch
 from gear.articulation import PartMotion
 from gear.config import TrainConfig
 from gear.geometry import nearest_neighbours
-from gear.kinematics import pose_parts
+from gear.kinematics import dq_to_rt, quat_mul, quat_rotate
 from gear.pipeline.common import Stage, TrainView, gaussian_lrs, image_terms
-from gear.splats import Densifier, Gaussians, render
+from gear.splats import Densifier, Gaussians, gaussian_budget, render
 from gear.splats.init import scene_extent
 
 
@@ -38,6 +38,46 @@ def motion_optimizer(motion: PartMotion, config: TrainConfig, extent: float) -> 
         ],
         eps=1e-15,
     )
+
+
+class HeldModel:
+    """The canonical Gaussians as the motion-only steps see them (M-step, joint scoring and its
+    tuning): every parameter detached and the Gaussians sorted by hard part (argmax of the
+    logits), so posing them is one 3x3 and one 4x4 matrix product per part, not a
+    dual-quaternion blend of one-hot weights per Gaussian (the same rigid motion; the render
+    does not depend on the order of its Gaussians). Built once and reused while the Gaussians
+    are unchanged, i.e. for a whole M-phase or one joint-type decision."""
+
+    def __init__(self, g: Gaussians) -> None:
+        self.key = held_key(g)
+        ids = g.part_ids()
+        order = torch.argsort(ids, stable=True)
+        self.counts = torch.bincount(ids, minlength=g.num_parts).tolist()
+        means, quats, log_scales, opacity, rgb = (t.detach()[order] for t in g.splat_arrays())
+        self.means, self.quats = means, quats
+        self._drawn = (log_scales, opacity, rgb)
+
+    def pose(self, qr: torch.Tensor, qd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(means, quats) [N, 3], [N, 4] of the held Gaussians moved rigidly with their parts by
+        the unit dual quaternions qr, qd [K, 4]; differentiable in qr and qd."""
+        # Row j of rot_t[k] is R_k e_j (so x R_k^T = x @ rot_t[k]); row i of turn[k] is
+        # qr_k * e_i (so qr_k * q = q @ turn[k]).
+        rot_t = quat_rotate(qr[:, None, :], torch.eye(3, dtype=qr.dtype))
+        turn = quat_mul(qr[:, None, :], torch.eye(4, dtype=qr.dtype))
+        shift = dq_to_rt(qr, qd)[1]
+        means = [m @ rot_t[k] + shift[k] for k, m in enumerate(self.means.split(self.counts))]
+        quats = [q @ turn[k] for k, q in enumerate(self.quats.split(self.counts))]
+        return torch.cat(means), torch.cat(quats)
+
+    def splat_arrays(self) -> tuple[torch.Tensor, ...]:
+        return (self.means, self.quats, *self._drawn)
+
+
+def held_key(g: Gaussians) -> tuple:
+    """Changes whenever the set of Gaussians is edited (densify/prune: `generation`, since a
+    freed tensor's id can be reused) or a parameter is updated in place (an optimizer step:
+    torch's in-place version counter)."""
+    return (g.generation, *((id(t), t._version) for t in g.params.values()))
 
 
 class RefineState(Stage):
@@ -68,12 +108,14 @@ class RefineState(Stage):
         self.extent = scene_extent([v.camera for v in self.canonical_views + self.target_views])
         if gaussians.optimizer is None:
             gaussians.setup_optimizer(gaussian_lrs(config, self.extent))
-        self.densifier = Densifier(gaussians)
+        self.densifier = Densifier(
+            gaussians, gaussian_budget(config, [v.camera for v in self.canonical_views]))
         self.motion_optimizer = motion_optimizer(motion, config, self.extent)
         self.total = config.stage3_iterations
         self._neighbours: torch.Tensor | None = None
         self._neighbours_generation = -1  # Gaussians.generation the lists were built for
         self._anchor_cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        self._held: HeldModel | None = None
 
     def phase(self, it: int) -> str:
         c = self.config
@@ -117,16 +159,20 @@ class RefineState(Stage):
         moved by `motion` under hard (argmax) assignment with every Gaussian parameter held:
         only `motion` receives gradients. The M-step, the hypothesis scoring and its
         fine-tuning all judge a motion this way."""
-        g = self.gaussians
-        qr, qd = motion.motion(1.0)
-        pose = pose_parts(g["means"].detach(), g["quats"].detach(), g.part_ids(), qr, qd)
+        held = self.held()
+        pose = held.pose(*motion.motion(1.0))  # once for every view
         terms: dict[str, torch.Tensor] = {}
         for view, bg in zip(views, backgrounds, strict=True):
-            out = render(g, view.camera, bg, pose=pose, depth=view.depth is not None,
-                         detach=True)
+            out = render(held, view.camera, bg, pose=pose, depth=view.depth is not None)
             for name, value in image_terms(out, view, bg, self.config).items():
                 terms[name] = terms.get(name, 0.0) + value / len(views)
         return terms
+
+    def held(self) -> HeldModel:
+        """The held model of the current Gaussians (rebuilt only after they changed)."""
+        if self._held is None or self._held.key != held_key(self.gaussians):
+            self._held = HeldModel(self.gaussians)
+        return self._held
 
     def maintain(self, it: int) -> None:
         """Densify/prune and opacity reset at their iterations, never inside an M-phase (the
