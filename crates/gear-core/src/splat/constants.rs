@@ -17,6 +17,13 @@ pub const MIN_TRANSMITTANCE: f64 = 1e-4;
 pub const CLAMP_FACTOR: f64 = 1.3;
 /// Quaternions are normalised by max(|q|, QUAT_EPS).
 pub const QUAT_EPS: f64 = 1e-12;
+/// How much the per-row spans of a Gaussian's 1/255 ellipse are widened (both executors) so
+/// that f32 rounding never makes the blend skip a pixel its own alpha test would take: the
+/// level by this fraction plus this much (the alpha test's own rounding, through exp and log,
+/// is ~1e-6 relative)...
+pub const ROW_LEVEL_MARGIN: f64 = 1e-3;
+/// ...and the span on a row by this many pixels on each side.
+pub const ROW_SPAN_SLACK: f64 = 1e-2;
 /// Tiles are TILE x TILE pixels.
 pub const TILE: u32 = 16;
 /// Largest number of feature channels.

@@ -11,7 +11,10 @@ use wgpu::util::DeviceExt;
 
 use crate::gpu::{workgroup_grid, GpuContext, PooledBuffer, ShaderSpec};
 
-use super::constants::{FAR, LOW_PASS, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, NEAR, QUAT_EPS};
+use super::constants::{
+    FAR, LOW_PASS, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, NEAR, QUAT_EPS, ROW_LEVEL_MARGIN,
+    ROW_SPAN_SLACK,
+};
 
 /// Side of the square pixel tiles the GPU kernels sort and blend by. The contract's 16
 /// (constants::TILE) only decides which pixels are tested, never a result; on the software
@@ -127,13 +130,6 @@ fn with_contract(spec: ShaderSpec) -> ShaderSpec {
         .with("QUAT_EPS", f32_literal(QUAT_EPS))
         .with("TILE", format!("{GPU_TILE}u"))
 }
-
-/// How much the row bounds of a Gaussian's 1/255 ellipse (project.wgsl) are widened so that
-/// f32 rounding never makes the blend skip a pixel its own alpha test would take: the level
-/// by this fraction plus this much, and the span on a row by [`ROW_SPAN_SLACK`] pixels.
-/// (The alpha test's own rounding, through exp and log, is ~1e-6 relative.)
-const ROW_LEVEL_MARGIN: f64 = 1e-3;
-const ROW_SPAN_SLACK: f64 = 1e-2;
 
 /// What a per-pixel kernel is compiled for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -16,6 +16,7 @@ from gear.kinematics import dq_to_rt, quat_mul, quat_rotate
 from gear.pipeline.common import Stage, TrainView, gaussian_lrs, image_terms
 from gear.splats import Densifier, Gaussians, gaussian_budget, render
 from gear.splats.init import scene_extent
+from gear.splats.sh import SH_PARAM
 
 
 def phase_at(schedule: str, it: int, interval: int, refine_joint: int) -> str:
@@ -56,6 +57,9 @@ class HeldModel:
         means, quats, log_scales, opacity, rgb = (t.detach()[order] for t in g.splat_arrays())
         self.means, self.quats = means, quats
         self._drawn = (log_scales, opacity, rgb)
+        # The view-dependent colour's coefficients, in the same order (gear.splats.sh reads
+        # them from `params` like a Gaussians' own).
+        self.params = {SH_PARAM: g[SH_PARAM].detach()[order]} if SH_PARAM in g.params else {}
 
     def pose(self, qr: torch.Tensor, qd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(means, quats) [N, 3], [N, 4] of the held Gaussians moved rigidly with their parts by

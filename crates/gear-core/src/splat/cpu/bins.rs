@@ -14,14 +14,12 @@ use super::lanes::LANES as BLOCK;
 use super::lanes::{array, mask, with_avx2, Lanes, LANES};
 use super::project::{Prepared, Screen, View};
 use super::TILE;
+use crate::splat::constants;
 use crate::splat::types::{Camera, Gaussians};
 
-/// The relative and absolute margins by which the row spans widen the 1/255 level: f32
-/// rounding of the per-pixel quadratic must never make a pixel pass that the spans left out
-/// (the per-pixel test still decides exactly).
-const LEVEL_MARGIN: f32 = 1e-3;
-/// Pixels of slack on each side of a row's span.
-const SPAN_SLACK: f32 = 1e-2;
+/// The contract's widening of the row spans (shared with the wgpu kernels), in f32.
+const LEVEL_MARGIN: f32 = constants::ROW_LEVEL_MARGIN as f32;
+const SPAN_SLACK: f32 = constants::ROW_SPAN_SLACK as f32;
 /// Pixel rows of slack above and below the ellipse's vertical extent; the rows inside it are
 /// then tested one by one.
 const ROW_SLACK: f32 = 1.0;
