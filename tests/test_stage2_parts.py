@@ -4,12 +4,13 @@ which pieces move together, which side of a piece its hinge is on, and small lev
 import numpy as np
 import pytest
 import torch
-from test_coarse import FRONT, box_surface, hinge_motion, line_distance
+from scipy.spatial import cKDTree
 
 from gear.articulation import PartMotion
 from gear.pipeline.stage2.hypotheses import edge_hinges, fit_plane, rod_hinges
 from gear.pipeline.stage2.parts import coarse_init
 from gear.pipeline.stage2.voxels import Scale, split_static_dynamic
+from test_coarse import FRONT, box_surface, hinge_motion, line_distance
 
 
 def angle_between(a, b):
@@ -37,6 +38,24 @@ def door_over_drawer(n=20000, seed=0):
     return state(False), state(True), hinge_axis, hinge_pivot, pull
 
 
+def surfaces_of(points):
+    """A SurfaceTest of a state seen completely: a point is on its surface when a centre lies
+    within the tolerance, else seen through."""
+    tree = cKDTree(points)
+
+    def look(query, tolerance):
+        on = tree.query(query)[0] < tolerance
+        return on, ~on
+
+    return look
+
+
+def coarse_init_seen(start, end, **kwargs):
+    """coarse_init with both states' images (complete views of their centres)."""
+    return coarse_init(start, end, surfaces={"start": surfaces_of(start),
+                                             "end": surfaces_of(end)}, **kwargs)
+
+
 def test_touching_parts_with_different_motions_give_two_parts():
     start, end, axis, pivot, pull = door_over_drawer()
     # The premise: on the grid stage 2 uses, door and drawer are one dynamic component.
@@ -46,7 +65,7 @@ def test_touching_parts_with_different_motions_give_two_parts():
     n = len(end) // 4
     door, drawer = labels[2 * n: 3 * n], labels[3 * n:]
     assert (door == 1).mean() > 0.3 and (drawer == 1).mean() > 0.3
-    result = coarse_init(start, end)
+    result = coarse_init_seen(start, end)
     assert result.num_parts == 3, result.notes
     joints = PartMotion.from_rt(result.motions, dtype=torch.float64).joints(pivot)
     by_type = {j["type"]: j for j in joints}
@@ -62,7 +81,7 @@ def test_touching_parts_with_different_motions_give_two_parts():
 
 def test_the_door_and_the_drawer_each_get_their_own_gaussians():
     start, end, *_ = door_over_drawer(seed=1)
-    result = coarse_init(start, end)
+    result = coarse_init_seen(start, end)
     canon = start if result.canonical == "start" else end
     assert result.canonical == "end" and len(canon) == len(end)
     n = len(end) // 4
@@ -131,7 +150,10 @@ def test_rod_hinges_contain_the_turn_of_a_lever():
     probe = np.array([[0.4, 0.0, 0.0], [0.2, 0.02, 0.0]])
     errors = [np.abs(probe @ r.T + t - (probe @ rot.T + trans)).max() for r, t in candidates]
     assert len(candidates) == 2 and min(errors) < 0.02
-    assert rod_hinges(fit_plane(lever), fit_plane(lever + [0, 0.3, 0])) == []
+    assert rod_hinges(fit_plane(lever), fit_plane(lever + np.array([0, 0.3, 0]))) == []
+
+
+HINGE_OFFSET = np.array([0.025, 0.0, 0.0])  # a lever's axis from its base corner
 
 
 def faucet(n=30000, seed=6):
@@ -142,8 +164,8 @@ def faucet(n=30000, seed=6):
     angles = [50.0, -40.0]
 
     def lever(base):
-        return box_surface(base + [0.0, -0.025, 0.0], base + [0.3, 0.025, 0.05], int(0.02 * n),
-                           rng)
+        return box_surface(base + np.array([0.0, -0.025, 0.0]), base + np.array([0.3, 0.025, 0.05]),
+                           int(0.02 * n), rng)
 
     def state(open_):
         body = box_surface([0, -0.7, 0], [0.6, 0.7, 1.0], int(0.8 * n), rng)
@@ -152,7 +174,7 @@ def faucet(n=30000, seed=6):
         for base, angle in zip(bases, angles, strict=True):
             piece = lever(base)
             if open_:
-                rot, trans = hinge_motion([0, 0, 1], base + [0.025, 0, 0], angle)
+                rot, trans = hinge_motion([0, 0, 1], base + HINGE_OFFSET, angle)
                 piece = piece @ rot.T + trans
             levers.append(piece)
         return np.concatenate([body, spout, *levers])
@@ -161,7 +183,7 @@ def faucet(n=30000, seed=6):
 
 
 def test_small_levers_are_found_and_turn():
-    start, end, bases, angles = faucet()
+    start, end, bases, _ = faucet()
     result = coarse_init(start, end)
     assert result.num_parts == 3, result.notes
     joints = PartMotion.from_rt(result.motions, dtype=torch.float64).joints(np.zeros(3))
@@ -170,6 +192,6 @@ def test_small_levers_are_found_and_turn():
     assert abs(got[0] - 40) <= 5 and abs(got[1] - 50) <= 5
     for j in joints:
         assert angle_between(j["axis"], [0, 0, 1]) < 5.0
-        nearest = min(line_distance(j["origin"], b + [0.025, 0, 0], np.array([0, 0, 1.0]))
+        nearest = min(line_distance(j["origin"], b + HINGE_OFFSET, np.array([0, 0, 1.0]))
                       for b in bases)
         assert nearest < 0.05

@@ -157,10 +157,15 @@ def _moves_on_its_own(
 ) -> bool:
     """Whether the cells `piece` (holding `points`) are a part of their own: at least 4
     centres (with K unknown, `total` canonical centres, _large_enough), and a motion that lands
-    all but SPLIT_FRACTION of it and explains DETECT_OVERLAP of the change it maps onto."""
+    all but SPLIT_FRACTION of it and explains DETECT_OVERLAP of the change it maps onto, other
+    than a half-turn fold. A fold shows the target a slab's formerly hidden face, so where
+    things land cannot tell a door folded flat from what it uncovers: that stays one piece
+    (the images, not the voxels, tell a fold)."""
     if len(points) < 4 or (total is not None and not _large_enough(points, total, extent)):
         return False
     own = init_motion(split, piece, points, target, target_labels)[0]
+    if own.fold:
+        return False
     return own.explained >= DETECT_OVERLAP and own.landed >= 1 - SPLIT_FRACTION
 
 
@@ -238,11 +243,18 @@ def find_parts(
         if owner is not None:
             owner.components.append(comp)
             continue
-        if hyps[0].trusted:
-            # A piece is cut off only when it is a part of its own: big enough, with a motion
-            # that lands it and claims change. The far end of a small lever, missed by its
-            # slightly wrong first turn, is neither.
-            rest = [piece for piece in _split_by_motion(split, mask, hyps[0])
+        # Cutting a component multiplies the candidates for parts: with K unknown, only the
+        # target images can reject the pieces that merely land somewhere (safe180's interior,
+        # uncovered by its door, lands on the closed door once shifted), so without them
+        # components stay whole.
+        if hyps[0].trusted and (on_surface is not None or wanted is not None):
+            # Split by the reading landing most: a door folded by half a turn shows the target
+            # its formerly hidden face, so its fold lands only half of it where the slide of
+            # the slab lands all. A piece is cut off only when it is a part of its own: big
+            # enough, with a motion that lands it and claims change. The far end of a small
+            # lever, missed by its slightly wrong first turn, is neither.
+            widest = max(hyps, key=lambda h: h.landed)
+            rest = [piece for piece in _split_by_motion(split, mask, widest)
                     if _moves_on_its_own(split, piece, canon[points_in(piece)], target,
                                          target_labels, len(canon) if wanted is None else None,
                                          extent)]
