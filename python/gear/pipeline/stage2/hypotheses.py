@@ -151,12 +151,6 @@ def hinge_candidates(
     return [rotation_about_line(axis, pivot, a) for a in (angle, angle + np.pi)]
 
 
-def pivot_of(rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
-    """A point on the axis of the rotation p -> R p + t (the minimum-norm solution of
-    (I - R) p = t; the axis is the null space of I - R)."""
-    return np.linalg.lstsq(np.eye(3) - rot, trans, rcond=None)[0]
-
-
 def axis_of(rot: np.ndarray) -> np.ndarray:
     """The unit axis of rotation matrix `rot` (sign arbitrary for a half turn)."""
     axis = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])

@@ -16,14 +16,11 @@ from gear.pipeline.stage2.hypotheses import (
     MIN_OVERLAP,
     PARALLEL_COS,
     Hypothesis,
-    axis_of,
     correlate,
     edge_hinges,
     fit_plane,
     hinge_candidates,
-    pivot_of,
     rod_hinges,
-    rotation_about_line,
 )
 
 # A hinge and a slide landing within this fraction of each other are both kept as candidates
@@ -38,13 +35,6 @@ CELLS_SINGLE = 16
 CELLS_MULTI = 100
 SPACING_FACTOR = 2.0
 MIN_PART_VOXELS = 8  # a component smaller than this is no part
-# The best hinge's line is searched this many voxels (in steps of half a voxel) around the
-# candidates' lines, across its axis: planes fitted to a few hundred blurred centres place it
-# a voxel or two off.
-PIVOT_SEARCH_VOXELS = 2.0
-ANGLE_SEARCH_DEG = 8.0
-ANGLE_STEP_DEG = 2.0
-FIT_SAMPLES = 1000
 FOLD_MARGIN = 0.15  # surface_fit a half-turn fold needs above a turn to go first
 
 MAX_TARGET_CANDIDATES = 16
@@ -128,42 +118,6 @@ class VoxelSplit:
         dist, _ = self.target_tree.query(moved, k=1)
         return float(np.exp(-((dist / (2 * self.spacing)) ** 2)).mean())
 
-    def refine_hinge(self, points: np.ndarray, src_cells: np.ndarray,
-                     hinge: Hypothesis) -> Hypothesis:
-        """`hinge` turned by up to ANGLE_SEARCH_DEG more or less and its line moved across its
-        axis, up to PIVOT_SEARCH_VOXELS voxels, to where `points` (the piece's centres) land
-        best on the target's centres (surface_fit); the pivot is searched in steps of half a
-        voxel for each angle, then in steps of an eighth around the best. Same axis."""
-        points = points[:: max(1, len(points) // FIT_SAMPLES)]  # enough to rank, and fast
-        rot0 = np.asarray(hinge.rot)
-        axis = axis_of(rot0)
-        basis = np.linalg.svd(np.eye(3) - rot0)[0][:, :2]  # the plane across the axis
-        start = pivot_of(rot0, hinge.trans)
-        angle = np.arctan2(np.dot(axis, [rot0[2, 1] - rot0[1, 2], rot0[0, 2] - rot0[2, 0],
-                                         rot0[1, 0] - rot0[0, 1]]), np.trace(rot0) - 1)
-
-        def search(rot: np.ndarray, centre: np.ndarray, step: float,
-                   best: tuple[float, np.ndarray, np.ndarray]
-                   ) -> tuple[float, np.ndarray, np.ndarray]:
-            offsets = step * self.grid.voxel_size * np.arange(-4, 5)
-            for a in offsets:
-                for b in offsets:
-                    p = centre + a * basis[:, 0] + b * basis[:, 1]
-                    fit = self.surface_fit(points, rot, p - rot @ p)
-                    if fit > best[0]:
-                        best = (fit, rot, p)
-            return best
-
-        best = (self.surface_fit(points, rot0, hinge.trans), rot0, start)
-        for delta in np.radians(np.arange(-ANGLE_SEARCH_DEG, ANGLE_SEARCH_DEG + 0.5,
-                                          ANGLE_STEP_DEG)):
-            rot, _ = rotation_about_line(axis, start, angle + delta)
-            best = search(rot, start, 0.5, best)
-        _, rot, pivot = search(best[1], best[2], 0.125, best)
-        out = self.score(src_cells, "hinge", rot, pivot - rot @ pivot)
-        out.fold = hinge.fold
-        return out if out.trusted else hinge
-
     def best_slide(self, src_mask: np.ndarray) -> np.ndarray | None:
         """The whole-voxel translation landing most of `src_mask` on target matter among those
         explaining enough target dynamic cells (None if no shift does)."""
@@ -223,7 +177,7 @@ def init_motion(
 
     Candidates: the plane-intersection hinges with every planar target component above a size
     floor (when the cells' centres are planar), each also about both edges of the slab (the two
-    sides a hinge can be on), the best of them refined across its axis (refine_hinge), and the
+    sides a hinge can be on), the one whose centres land closest (VoxelSplit.surface_fit), and the
     best whole-voxel slide. Among those
     explaining enough target change, the one landing most cells on target matter wins (a hinge
     on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
@@ -258,13 +212,13 @@ def init_motion(
     hinges = [h for h in candidates if h.trusted]
     candidates = []
     # Per family (turns, half-turn folds), the hinge whose moved centres lie closest to the
-    # target's (which side of the slab the hinge is on, which of the angles), refined.
+    # target's (which side of the slab the hinge is on, which of the angles).
     fits = [split.surface_fit(points, h.rot, h.trans) for h in hinges]
     best_of = {}
     for family in (False, True):
         members = [(f, h) for f, h in zip(fits, hinges, strict=True) if h.fold == family]
         if members:
-            hinge = split.refine_hinge(points, src_cells, max(members, key=lambda m: m[0])[1])
+            hinge = max(members, key=lambda m: m[0])[1]
             best_of[family] = (split.surface_fit(points, hinge.rot, hinge.trans), hinge)
     spare_hinge = None
     if best_of:
