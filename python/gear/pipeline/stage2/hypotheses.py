@@ -16,6 +16,9 @@ from scipy.signal import fftconvolve
 PLANE_ASPECT = 2.0
 PARALLEL_COS = 0.95  # |n_s . n_t| above this: the planes are too parallel to intersect
 MIN_OVERLAP = 0.1  # overlap / min(|S|, |T|) below this: no motion hypothesis is trusted
+# Counting a piece as a new part (K unknown) needs more: pieces seen in one state only (a
+# cabinet's interior through an open door) reach 10-20 % by chance.
+DETECT_OVERLAP = 0.3
 
 
 @dataclass
@@ -40,6 +43,11 @@ class Plane:
     @property
     def is_plane(self) -> bool:
         return self.aspect > PLANE_ASPECT
+
+    @property
+    def is_rod(self) -> bool:
+        """Much longer than wide: a lever or a handle, whose longest direction turns."""
+        return self.extents[0] > PLANE_ASPECT * max(self.extents[1], 1e-12)
 
 
 @dataclass
@@ -141,6 +149,51 @@ def hinge_candidates(
     pivot = np.linalg.lstsq(system, rhs, rcond=None)[0]
     angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
     return [rotation_about_line(axis, pivot, a) for a in (angle, angle + np.pi)]
+
+
+def axis_of(rot: np.ndarray) -> np.ndarray:
+    """The unit axis of rotation matrix `rot` (sign arbitrary for a half turn)."""
+    axis = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    if np.linalg.norm(axis) < 1e-9:  # no turn, or a half turn: the eigenvector of R + R^T
+        axis = np.linalg.eigh(rot + rot.T)[1][:, -1]
+    return axis / np.linalg.norm(axis)
+
+
+def edge_hinges(src: Plane, rot: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The rotation `rot` about lines through the two ends of the piece `src` across its axis
+    (along its longest principal direction not along the axis): the two sides a hinge can be
+    on. Two planes' intersection line misses a door's hinge by about its thickness over
+    tan(angle / 2) (it turns about its edge, not its mid-plane), most of its width at small
+    angles; a lever turns about one of its ends, not its middle."""
+    axis = axis_of(rot)
+    for direction in src.axes[:2]:
+        across = direction - np.dot(direction, axis) * axis
+        if np.linalg.norm(across) > 0.5:
+            break
+    else:
+        return []
+    across /= np.linalg.norm(across)
+    half = src.width_along(across) / 2
+    ends = [src.centroid + side * half * across for side in (-1.0, 1.0)]
+    return [(rot, end - rot @ end) for end in ends]
+
+
+def rod_hinges(src: Plane, dst: Plane) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Rotations turning the long piece `src` onto the long piece `dst` (a lever, a handle: no
+    plane to intersect): axis d_s x d_t of their longest directions, angle between them (and
+    that minus pi: the directions' signs are arbitrary), about the point midway between the
+    two lines where they pass closest. Nearly parallel rods give none."""
+    ds, dt = src.axes[0], dst.axes[0]
+    cross = np.cross(ds, dt)
+    if np.linalg.norm(cross) < np.sqrt(1 - PARALLEL_COS**2):
+        return []
+    axis = cross / np.linalg.norm(cross)
+    # Closest points c_s + u d_s and c_t + v d_t of the two lines.
+    system = np.stack([ds, -dt], axis=1)
+    u, v = np.linalg.lstsq(system, dst.centroid - src.centroid, rcond=None)[0]
+    pivot = (src.centroid + u * ds + dst.centroid + v * dt) / 2
+    angle = float(np.arccos(np.clip(np.dot(ds, dt), -1.0, 1.0)))
+    return [rotation_about_line(axis, pivot, a) for a in (angle, angle - np.pi)]
 
 
 def correlate(grid: np.ndarray, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

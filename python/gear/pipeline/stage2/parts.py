@@ -4,13 +4,14 @@ together, the part logits and the motion candidates handed to stage 3 (docs/meth
 
 from __future__ import annotations
 
+import heapq
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from gear import geometry
-from gear.pipeline.stage2.hypotheses import IDENTITY, Hypothesis, fit_plane
+from gear.pipeline.stage2.hypotheses import DETECT_OVERLAP, IDENTITY, Hypothesis, fit_plane
 from gear.pipeline.stage2.voxels import (
     MAX_TARGET_CANDIDATES,
     MIN_PART_VOXELS,
@@ -24,19 +25,23 @@ from gear.pipeline.stage2.voxels import (
 # static part gets +LEAN and the movable parts -LEAN (static-leaning, still easy to overturn).
 SEED_LOGIT = 3.0
 STATIC_LEAN = 1.0
-# Counting a component as a new part (K unknown) needs more: components seen in one state only
-# (a cabinet's interior through an open door) reach 10-20 % by chance.
-DETECT_OVERLAP = 0.3
-# K from the data: a canonical component is a part when it has at least MIN_PART_VOXELS voxels,
+# K from the data: a canonical piece is a part when it has at least MIN_PART_VOXELS voxels,
 # holds MIN_PART_FRACTION of the canonical centres and some motion maps it onto the target's
 # dynamic voxels (overlap >= DETECT_OVERLAP).
 MIN_PART_FRACTION = 0.01
+# ... or, small and long (_large_enough), this fraction of the centres over this fraction of
+# the object's extent.
+MIN_SMALL_PART_FRACTION = 0.006
+MIN_PART_EXTENT = 0.15
 # With the target state's images (`surfaces`), a part must also be seen to move: at least
 # this fraction of its centres seen on the target's surface once moved, and seen through (empty)
 # where they were. Real doors score well above it, floaters well below (docs/method.md,
 # "K from the data").
 MIN_SEEN_CHANGE = 0.6
 SURFACE_TOLERANCE_VOXELS = 2.0
+# A piece whose best motion leaves at least this fraction of its cells off target matter is
+# split: the rest gets a motion of its own (_split_by_motion).
+SPLIT_FRACTION = 0.2
 # look(points [M,3], tolerance) -> (on_surface [M] bool, free [M] bool): which points lie on the
 # surface the target state's images show (within `tolerance` in depth) and which points those
 # images see through (empty space).
@@ -130,58 +135,150 @@ def seen_change(
     return float(min(landed.mean(), vacated.mean()))
 
 
+def _split_by_motion(split: VoxelSplit, mask: np.ndarray, motion: Hypothesis) -> list[np.ndarray]:
+    """The 26-connected pieces (of at least MIN_PART_VOXELS cells) of the cells of `mask` that
+    `motion` does not land on target matter, when those are at least MIN_PART_VOXELS cells and
+    SPLIT_FRACTION of `mask`; else none. A door and the drawer beside it touch, so their
+    dynamic voxels form one component, but no one rigid motion lands both; a rigid part whose
+    motion leaves a few cells where the target saw nothing (its hidden side) stays whole."""
+    cells = np.argwhere(mask)
+    rest = cells[~split.landing(cells, motion)]
+    if len(rest) < max(MIN_PART_VOXELS, SPLIT_FRACTION * len(cells)):
+        return []
+    rest_mask = np.zeros_like(mask)
+    rest_mask[tuple(rest.T)] = True
+    labels, sizes = geometry.components(rest_mask, connectivity=26)
+    return [labels == i for i, size in enumerate(sizes, start=1) if size >= MIN_PART_VOXELS]
+
+
+def _moves_on_its_own(
+    split: VoxelSplit, piece: np.ndarray, points: np.ndarray, target: np.ndarray,
+    target_labels: np.ndarray, total: int | None, extent: float,
+) -> bool:
+    """Whether the cells `piece` (holding `points`) are a part of their own: at least 4
+    centres (with K unknown, `total` canonical centres, _large_enough), and a motion that lands
+    all but SPLIT_FRACTION of it and explains DETECT_OVERLAP of the change it maps onto, other
+    than a half-turn fold. A fold shows the target a slab's formerly hidden face, so where
+    things land cannot tell a door folded flat from what it uncovers: that stays one piece
+    (the images, not the voxels, tell a fold)."""
+    if len(points) < 4 or (total is not None and not _large_enough(points, total, extent)):
+        return False
+    own = init_motion(split, piece, points, target, target_labels)[0]
+    if own.fold:
+        return False
+    return own.explained >= DETECT_OVERLAP and own.landed >= 1 - SPLIT_FRACTION
+
+
+def _large_enough(points: np.ndarray, total: int, extent: float) -> bool:
+    """Whether a piece of `points` (of `total` canonical centres, the object `extent` across)
+    is big enough to be a part when K is unknown: MIN_PART_FRACTION of the centres, or, for a
+    small or thin part (a lever, a temple of glasses), MIN_SMALL_PART_FRACTION of them spread
+    over MIN_PART_EXTENT of the object. Noise clusters of that many centres are compact."""
+    if len(points) >= MIN_PART_FRACTION * total:
+        return True
+    if len(points) < max(4, MIN_SMALL_PART_FRACTION * total):
+        return False
+    return bool(fit_plane(points).extents[0] >= MIN_PART_EXTENT * extent)
+
+
 def find_parts(
     canon: np.ndarray, target: np.ndarray, num_parts: int | None, voxel_size: float,
     on_surface: SurfaceTest | None = None, dilation_radius: int = 1,
 ) -> tuple[list[_Part], np.ndarray, list[str]]:
-    """Movable parts (their canonical components and initial motion) and each canonical
-    point's component label.
+    """Movable parts (their canonical pieces and initial motion) and each canonical point's
+    piece label.
 
-    Components are visited largest first. One that an earlier part's motion moves onto target
-    matter about as well as its own best motion joins that part: a pulled drawer leaves two
-    separate dynamic pieces, its front and its back. With K given, parts whose motion is
-    trusted come first and untrusted components (identity motion) fill the remaining slots.
-    With K unknown, a component becomes a part only above the size floors and when its motion
-    explains at least DETECT_OVERLAP of the change it maps onto, and, given `on_surface`, when
-    the target images see it move (seen_change >= MIN_SEEN_CHANGE).
+    The dynamic region is explained by as few rigid motions as it needs. Pieces (at first the
+    canonical components) are visited largest first. One that an earlier part's motion moves
+    onto target matter about as well as its own best motion joins that part: a pulled drawer
+    leaves two separate dynamic pieces, its front and its back. Otherwise the cells its best
+    motion does not land, when enough (_split_by_motion), are cut off as pieces of their own
+    and visited in turn, and the motion is fitted again to the cells it explains. With K given,
+    parts whose motion is trusted come first and untrusted pieces (identity motion) fill the
+    remaining slots. With K unknown, a piece becomes a part only above the size floors and when
+    its motion explains at least DETECT_OVERLAP of the change it maps onto, and, given
+    `on_surface`, when the target images see it move (seen_change >= MIN_SEEN_CHANGE).
     """
     split = split_static_dynamic(canon, target, voxel_size, dilation_radius)
-    canon_labels = split.grid.point_labels(canon, split.labels[0])
+    pieces = split.labels[0].copy()
+    canon_labels = split.grid.point_labels(canon, pieces)
     target_labels = split.grid.point_labels(target, split.labels[1])
     sizes = split.sizes[0]
     notes = [
         f"voxel size {voxel_size:.4g}: {len(sizes)} canonical and {len(split.sizes[1])} target "
         f"dynamic components (largest {sizes[:6].tolist()})"
     ]
-    counts = np.bincount(canon_labels, minlength=len(sizes) + 1)
+    extent = Scale.extent_of(canon)
+    point_cells = split.grid.voxel_of(canon)
+    in_grid = np.all((point_cells >= 0) & (point_cells < np.array(split.grid.shape)), axis=1)
+
+    def points_in(mask: np.ndarray) -> np.ndarray:
+        """Which canonical centres lie in the cells of `mask`."""
+        inside = np.zeros(len(canon), dtype=bool)
+        inside[in_grid] = mask[tuple(point_cells[in_grid].T)]
+        return inside
+
     wanted = None if num_parts is None else num_parts - 1
     visit = max(MAX_TARGET_CANDIDATES, 2 * (wanted or 0))
+    # Max-heap of (voxels, piece label); split pieces get fresh labels.
+    queue = [(-int(size), comp) for comp, size in enumerate(sizes[:visit], start=1)]
+    heapq.heapify(queue)
+    next_label = len(sizes) + 1
     parts: list[_Part] = []
     spare: list[_Part] = []
-    for comp, size in enumerate(sizes[:visit], start=1):
-        if size < MIN_PART_VOXELS or counts[comp] < 4:
-            break
-        if wanted is None and counts[comp] < MIN_PART_FRACTION * len(canon):
+    while queue:
+        size, comp = heapq.heappop(queue)
+        mask = pieces == comp
+        points = canon[canon_labels == comp]
+        if -size < MIN_PART_VOXELS or len(points) < 4:
             continue
-        hyps = init_motion(
-            split, comp, fit_plane(canon[canon_labels == comp]), target, target_labels
-        )
-        cells = np.argwhere(split.labels[0] == comp)
+        if wanted is None and not _large_enough(points, len(canon), extent):
+            continue
+        hyps = init_motion(split, mask, points, target, target_labels)
+        cells = np.argwhere(mask)
         # Any reading of a part counts: a safe door's dial, a component of its own, moves
         # with the door only under the half turn that may not be the door's first reading.
         owner = next((p for p in parts
                       if any(_moves_along(split, cells, h, hyps[0]) for h in p.hypotheses)), None)
+        if owner is not None:
+            owner.components.append(comp)
+            continue
+        # Cutting a component multiplies the candidates for parts: with K unknown, only the
+        # target images can reject the pieces that merely land somewhere (safe180's interior,
+        # uncovered by its door, lands on the closed door once shifted), so without them
+        # components stay whole.
+        if hyps[0].trusted and (on_surface is not None or wanted is not None):
+            # Split by the reading landing most: a door folded by half a turn shows the target
+            # its formerly hidden face, so its fold lands only half of it where the slide of
+            # the slab lands all. A piece is cut off only when it is a part of its own: big
+            # enough, with a motion that lands it and claims change. The far end of a small
+            # lever, missed by its slightly wrong first turn, is neither.
+            widest = max(hyps, key=lambda h: h.landed)
+            rest = [piece for piece in _split_by_motion(split, mask, widest)
+                    if _moves_on_its_own(split, piece, canon[points_in(piece)], target,
+                                         target_labels, len(canon) if wanted is None else None,
+                                         extent)]
+            for piece in rest:
+                mask &= ~piece
+                pieces[piece] = next_label
+                heapq.heappush(queue, (-int(piece.sum()), next_label))
+                next_label += 1
+            if rest:
+                canon_labels = split.grid.point_labels(canon, pieces)
+                notes.append(f"component {comp}: {len(rest)} piece(s) its motion does not "
+                             "explain split off")
+                points = canon[canon_labels == comp]
+                if len(points) < 4:
+                    continue
+                hyps = init_motion(split, mask, points, target, target_labels)
         detected = hyps[0].explained >= DETECT_OVERLAP
-        if detected and wanted is None and owner is None and on_surface is not None:
-            seen = seen_change(canon[canon_labels == comp], hyps[0], on_surface,
-                               SURFACE_TOLERANCE_VOXELS * voxel_size)
+        if detected and wanted is None and on_surface is not None:
+            seen = seen_change(points, hyps[0], on_surface, SURFACE_TOLERANCE_VOXELS * voxel_size)
             detected = seen >= MIN_SEEN_CHANGE
             if not detected:
                 notes.append(f"component {comp} not a part: the target images see only "
                              f"{seen:.2f} of it move")
-        if owner is not None:
-            owner.components.append(comp)
-        elif hyps[0].trusted and (detected or wanted is not None):
+        if hyps[0].trusted and (detected or wanted is not None):
             if wanted is None or len(parts) < wanted:
                 parts.append(_Part([comp], hyps))
         else:

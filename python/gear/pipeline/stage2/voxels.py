@@ -7,17 +7,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from gear import geometry
 from gear.pipeline.stage2.hypotheses import (
+    DETECT_OVERLAP,
     IDENTITY,
     MIN_OVERLAP,
     PARALLEL_COS,
     Hypothesis,
-    Plane,
     correlate,
+    edge_hinges,
     fit_plane,
     hinge_candidates,
+    rod_hinges,
 )
 
 # A hinge and a slide landing within this fraction of each other are both kept as candidates
@@ -32,6 +35,8 @@ CELLS_SINGLE = 16
 CELLS_MULTI = 100
 SPACING_FACTOR = 2.0
 MIN_PART_VOXELS = 8  # a component smaller than this is no part
+FOLD_MARGIN = 0.15  # surface_fit a half-turn fold needs above a turn to go first
+
 MAX_TARGET_CANDIDATES = 16
 MAX_DENSE_CELLS = 1 << 26
 SPACING_SAMPLES = 20000
@@ -45,15 +50,20 @@ class Scale:
     extent: float
     spacing: float
 
+    @staticmethod
+    def extent_of(points: np.ndarray) -> float:
+        """The largest side of the 0.5-99.5 percentile box of `points` (strays left out)."""
+        lo, hi = np.percentile(points, [0.5, 99.5], axis=0)
+        return float((hi - lo).max())
+
     @classmethod
     def of(cls, points: np.ndarray, seed: int = 0) -> Scale:
-        lo, hi = np.percentile(points, [0.5, 99.5], axis=0)
         rng = np.random.default_rng(seed)
         count = min(len(points), SPACING_SAMPLES)
         sample = points[rng.choice(len(points), count, replace=False)]
         # k = 2 against the full set: the first neighbour of a sampled point is itself.
         _, dist = geometry.knn(points.astype(np.float32), 2, queries=sample.astype(np.float32))
-        scale = cls(float((hi - lo).max()), float(np.median(dist[:, 1])))
+        scale = cls(cls.extent_of(points), float(np.median(dist[:, 1])))
         if not scale.extent > 0:
             raise ValueError("means: the centres have no extent (all points coincide)")
         return scale
@@ -73,6 +83,8 @@ class VoxelSplit:
     dyn_target: np.ndarray  # target dynamic cells, dilated by one voxel
     labels: tuple[np.ndarray, np.ndarray]  # component labels (canonical, target), 0 = none
     sizes: tuple[np.ndarray, np.ndarray]  # voxel counts per label, largest first
+    target_tree: cKDTree  # the target centres
+    spacing: float  # their median distance to the nearest other centre
 
     def score(
         self, src_cells: np.ndarray, kind: str, rot: np.ndarray, trans: np.ndarray
@@ -87,6 +99,24 @@ class VoxelSplit:
             1, min(len(src_cells), int(self.dyn_target.sum()))
         )
         return Hypothesis(kind, rot, trans, float(landed.sum()) / len(src_cells), explained)
+
+    def landing(self, src_cells: np.ndarray, motion: Hypothesis) -> np.ndarray:
+        """Which of `src_cells` [M, 3] `motion` lands on target matter (within one voxel)."""
+        moved = self.grid.centres(src_cells) @ np.asarray(motion.rot).T + motion.trans
+        cells = self.grid.voxel_of(moved)
+        inside = np.all((cells >= 0) & (cells < np.array(self.grid.shape)), axis=1)
+        out = np.zeros(len(src_cells), dtype=bool)
+        c = cells[inside]
+        out[inside] = self.occ_target[c[:, 0], c[:, 1], c[:, 2]]
+        return out
+
+    def surface_fit(self, points: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> float:
+        """How closely `points` moved by p -> R p + t lie on the target's centres: the mean of
+        exp(-(d / 2s)^2) over their distances d to the nearest target centre, s the target's
+        median centre spacing. Unlike the voxel scores it varies smoothly with the motion."""
+        moved = points @ np.asarray(rot).T + np.asarray(trans)
+        dist, _ = self.target_tree.query(moved, k=1)
+        return float(np.exp(-((dist / (2 * self.spacing)) ** 2)).mean())
 
     def best_slide(self, src_mask: np.ndarray) -> np.ndarray | None:
         """The whole-voxel translation landing most of `src_mask` on target matter among those
@@ -131,16 +161,24 @@ def split_static_dynamic(
     # Scores tolerate one voxel: a thin moved surface lands on the neighbour cell of its match.
     near_occ = geometry.dilate(occ_t, 1)
     near_dyn = geometry.dilate(occ_t & ~static, 1)
-    return VoxelSplit(grid, occ_t, near_occ, near_dyn, (labels[0], labels[1]), (sizes[0], sizes[1]))
+    tree = cKDTree(target)
+    sample = target[:: max(1, len(target) // SPACING_SAMPLES)]
+    spacing = float(np.median(tree.query(sample, k=2)[0][:, 1]))
+    return VoxelSplit(grid, occ_t, near_occ, near_dyn, (labels[0], labels[1]), (sizes[0], sizes[1]),
+                      tree, max(spacing, 1e-12 * voxel_size))
 
 
 def init_motion(
-    split: VoxelSplit, comp: int, canon_plane: Plane, target: np.ndarray, target_labels: np.ndarray
+    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, target: np.ndarray,
+    target_labels: np.ndarray,
 ) -> list[Hypothesis]:
-    """Initial motion of canonical component `comp`, and the runner-up of the other kind.
+    """Initial motion of the canonical cells `src_mask` (holding the centres `points`), and the
+    runner-up of the other kind.
 
     Candidates: the plane-intersection hinges with every planar target component above a size
-    floor (when the component itself is planar), and the best whole-voxel slide. Among those
+    floor (when the cells' centres are planar), each also about both edges of the slab (the two
+    sides a hinge can be on), the one whose centres land closest (VoxelSplit.surface_fit), and the
+    best whole-voxel slide. Among those
     explaining enough target change, the one landing most cells on target matter wins (a hinge
     on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
     follows when it lands within TIE_MARGIN of the winner (a hinge that close goes first), or
@@ -149,40 +187,76 @@ def init_motion(
     door), while a slide of the symmetric slab lands both faces; the voxels cannot tell the two
     apart, the images can.
     """
-    src_mask = split.labels[0] == comp
     src_cells = np.argwhere(src_mask)
+    canon_plane = fit_plane(points)
     candidates: list[Hypothesis] = []
     fold_offsets = split.grid.voxel_size * np.arange(-2.0, 2.5, 0.5)
-    if canon_plane.is_plane:
+    if canon_plane.is_plane or canon_plane.is_rod:
         floor = max(MIN_PART_VOXELS, 0.2 * len(src_cells))
         for j, size in enumerate(split.sizes[1][:MAX_TARGET_CANDIDATES], start=1):
             if size < floor:
                 break
             plane = fit_plane(target[target_labels == j])
-            if plane.is_plane:
-                fold = abs(float(np.dot(canon_plane.normal, plane.normal))) > PARALLEL_COS
-                for rot, trans in hinge_candidates(canon_plane, plane, fold_offsets):
-                    hyp = split.score(src_cells, "hinge", rot, trans)
-                    hyp.fold = fold
+            fold = abs(float(np.dot(canon_plane.normal, plane.normal))) > PARALLEL_COS
+            turns = []
+            if canon_plane.is_plane and plane.is_plane:
+                turns += [(rt, fold) for rt in hinge_candidates(canon_plane, plane, fold_offsets)]
+            if canon_plane.is_rod and plane.is_rod:
+                turns += [(rt, False) for rt in rod_hinges(canon_plane, plane)]
+            for (rot, trans), folded in turns:
+                sides = [] if folded else edge_hinges(canon_plane, rot)
+                for r, t in [(rot, trans), *sides]:
+                    hyp = split.score(src_cells, "hinge", r, t)
+                    hyp.fold = folded
                     candidates.append(hyp)
+    hinges = [h for h in candidates if h.trusted]
+    candidates = []
+    # Per family (turns, half-turn folds), the hinge whose moved centres lie closest to the
+    # target's (which side of the slab the hinge is on, which of the angles).
+    fits = [split.surface_fit(points, h.rot, h.trans) for h in hinges]
+    best_of = {}
+    for family in (False, True):
+        members = [(f, h) for f, h in zip(fits, hinges, strict=True) if h.fold == family]
+        if members:
+            hinge = max(members, key=lambda m: m[0])[1]
+            best_of[family] = (split.surface_fit(points, hinge.rot, hinge.trans), hinge)
+    spare_hinge = None
+    if best_of:
+        # A turn goes first unless a fold lands its centres clearly closer: a symmetric piece
+        # (a lever, a knob) also lands on its turned self when flipped by a half turn about
+        # the bisector, and the fold's extra pivot offsets fit noise. The other family's
+        # hinge stays a candidate for stage 3's images.
+        order = sorted(best_of, key=lambda fam: best_of[fam][0] - (FOLD_MARGIN if fam else 0),
+                       reverse=True)
+        candidates.append(best_of[order[0]][1])
+        if len(order) > 1:
+            spare_hinge = best_of[order[1]][1]
     shift = split.best_slide(src_mask)
     if shift is not None:
         candidates.append(split.score(src_cells, "slide", np.eye(3), shift))
     trusted = [h for h in candidates if h.trusted]
     if not trusted:
         return [IDENTITY]
+    # Hypotheses that explain enough change to claim a part outrank those that merely may
+    # initialise one: a door shifted sideways onto its static neighbour lands as well as the
+    # door turned, but explains little of what changed.
+    claiming = [h for h in trusted if h.explained >= DETECT_OVERLAP] or trusted
     # max() keeps the first of equal scores: hinges come first.
-    best = max(trusted, key=lambda h: h.landed)
+    best = max(claiming, key=lambda h: h.landed)
     others = [
         h for h in trusted
         if h.kind != best.kind and (h.fold or h.landed >= best.landed - TIE_MARGIN)
     ]
-    if not others:
-        return [best]
-    runner = max(others, key=lambda h: h.landed)
-    if best.kind == "slide" and runner.landed >= best.landed - TIE_MARGIN:
-        # Near-tie: the hinge goes first. Stage 3 can turn a hinge into a slide (the ε rule),
-        # but a part that starts sliding never grows the rotation of a door: the images then
-        # have to reject a slide the model was already trained for (docs/method.md, "Stage 2").
-        best, runner = runner, best
-    return [best, runner]
+    chosen = [best]
+    if others:
+        runner = max(others, key=lambda h: h.landed)
+        if best.kind == "slide" and runner.landed >= best.landed - TIE_MARGIN:
+            # Near-tie: the hinge goes first. Stage 3 can turn a hinge into a slide (the ε
+            # rule), but a part that starts sliding never grows the rotation of a door: the
+            # images then have to reject a slide the model was already trained for
+            # (docs/method.md, "Stage 2").
+            best, runner = runner, best
+        chosen = [best, runner]
+    if spare_hinge is not None and any(h.kind == "hinge" for h in chosen):
+        chosen.append(spare_hinge)
+    return chosen

@@ -1,0 +1,198 @@
+"""Stage 2 on synthetic surface samples: how many rigid motions the dynamic region needs (K),
+which pieces move together, which side of a piece its hinge is on, and small levers."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from gear.articulation import PartMotion
+from gear.pipeline.stage2.hypotheses import edge_hinges, fit_plane, rod_hinges
+from gear.pipeline.stage2.parts import coarse_init
+from gear.pipeline.stage2.voxels import Scale, split_static_dynamic
+from test_coarse import FRONT, box_surface, hinge_motion, line_distance
+
+
+def angle_between(a, b):
+    return float(np.degrees(np.arccos(min(1.0, abs(float(np.dot(a, b)))))))
+
+
+def door_over_drawer(n=20000, seed=0):
+    """A cabinet whose door (upper front, hinged on its left edge, axis -z) opens 60 degrees
+    while the drawer right under it is pulled 0.35 out: the open door's lower edge rests on
+    the pulled drawer's rim, so the two moved pieces touch. Returns the states, the door's
+    hinge (axis, pivot) and the drawer's pull."""
+    rng = np.random.default_rng(seed)
+    hinge_axis, hinge_pivot = np.array([0.0, 0.0, -1.0]), np.array([0.0, -0.025, 0.0])
+    pull = np.array([0.0, -0.35, 0.0])
+
+    def state(open_):
+        body = box_surface([0, 0, 0], [1.2, 1, 1.4], int(0.5 * n), rng, skip=(FRONT,))
+        door = box_surface([0, -0.04, 0.6], [1.2, -0.01, 1.4], int(0.25 * n), rng)
+        drawer = box_surface([0.02, -0.04, 0.02], [1.18, 0.9, 0.6], int(0.25 * n), rng, skip=(5,))
+        if open_:
+            rot, trans = hinge_motion(hinge_axis, hinge_pivot, 60.0)
+            door, drawer = door @ rot.T + trans, drawer + pull
+        return np.concatenate([body, door, drawer])
+
+    return state(False), state(True), hinge_axis, hinge_pivot, pull
+
+
+def surfaces_of(points):
+    """A SurfaceTest of a state seen completely: a point is on its surface when a centre lies
+    within the tolerance, else seen through."""
+    tree = cKDTree(points)
+
+    def look(query, tolerance):
+        on = tree.query(query)[0] < tolerance
+        return on, ~on
+
+    return look
+
+
+def coarse_init_seen(start, end, **kwargs):
+    """coarse_init with both states' images (complete views of their centres)."""
+    return coarse_init(start, end, surfaces={"start": surfaces_of(start),
+                                             "end": surfaces_of(end)}, **kwargs)
+
+
+def test_touching_parts_with_different_motions_give_two_parts():
+    start, end, axis, pivot, pull = door_over_drawer()
+    # The premise: on the grid stage 2 uses, door and drawer are one dynamic component.
+    size = Scale.of(np.concatenate([start, end])).voxel_size(single_part=False)
+    split = split_static_dynamic(end, start, size)
+    labels = split.grid.point_labels(end, split.labels[0])
+    n = len(end) // 4
+    door, drawer = labels[2 * n: 3 * n], labels[3 * n:]
+    assert (door == 1).mean() > 0.3 and (drawer == 1).mean() > 0.3
+    result = coarse_init_seen(start, end)
+    assert result.num_parts == 3, result.notes
+    joints = PartMotion.from_rt(result.motions, dtype=torch.float64).joints(pivot)
+    by_type = {j["type"]: j for j in joints}
+    assert set(by_type) == {"revolute", "prismatic"}
+    hinge, slide = by_type["revolute"], by_type["prismatic"]
+    assert angle_between(hinge["axis"], axis) < 2.0
+    assert hinge["angle_deg"] == pytest.approx(60.0, abs=3.0)
+    assert line_distance(hinge["origin"], pivot, axis) < 0.05
+    travel = pull if result.canonical == "end" else -pull  # start -> end is never asked here
+    assert angle_between(slide["axis"], travel / np.linalg.norm(travel)) < 3.0
+    assert slide["distance"] == pytest.approx(0.35, abs=2 * result.voxel_size)
+
+
+def test_the_door_and_the_drawer_each_get_their_own_gaussians():
+    start, end, *_ = door_over_drawer(seed=1)
+    result = coarse_init_seen(start, end)
+    canon = start if result.canonical == "start" else end
+    assert result.canonical == "end" and len(canon) == len(end)
+    n = len(end) // 4
+    owner = result.logits.argmax(1)
+    door, drawer = owner[2 * n: 3 * n], owner[3 * n:]
+    door_part = np.bincount(door, minlength=3)[1:].argmax() + 1
+    drawer_part = np.bincount(drawer, minlength=3)[1:].argmax() + 1
+    assert door_part != drawer_part
+    assert (door == door_part).mean() > 0.5 and (drawer == drawer_part).mean() > 0.4
+
+
+def slab_door_beside_panel(angle_deg, n=16000, seed=3):
+    """A thick door (0.08) hinged on its right back edge beside a static panel of the same
+    size on that side: the door mirrored about its hinge lands on the panel, the door on the
+    wrong side of its own slab lands in the air."""
+    rng = np.random.default_rng(seed)
+    axis, pivot = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+
+    def state(open_):
+        body = box_surface([0, 0.0, 0], [2.0, 1.0, 1.0], int(0.5 * n), rng, skip=(FRONT,))
+        panel = box_surface([1.0, -0.08, 0], [2.0, 0.0, 1.0], int(0.2 * n), rng)
+        door = box_surface([0.0, -0.08, 0], [1.0, 0.0, 1.0], int(0.3 * n), rng)
+        if open_:
+            rot, trans = hinge_motion(axis, pivot, angle_deg)
+            door = door @ rot.T + trans
+        return np.concatenate([body, panel, door])
+
+    return state(False), state(True), axis, pivot
+
+
+@pytest.mark.parametrize("angle_deg", [150.0, 25.0])
+def test_door_pivot_side_is_chosen_by_where_it_lands(angle_deg):
+    """150 degrees: the plane normals give 30 or 150 about either side's line; 25 degrees:
+    the thick door's mid-planes cross far from its hinge. Both must end on the right edge."""
+    start, end, axis, pivot = slab_door_beside_panel(angle_deg)
+    result = coarse_init(start, end)
+    assert result.num_parts == 2, result.notes
+    joint = PartMotion.from_rt(result.motions, dtype=torch.float64).joints(pivot)[0]
+    assert joint["type"] == "revolute"
+    assert angle_between(joint["axis"], axis) < 2.0
+    assert joint["angle_deg"] == pytest.approx(angle_deg, abs=3.0)
+    # The other side of the door is 1.0 away; its thickness (0.08) and the plane fits of its
+    # voxel-cut pieces blur where along that side.
+    assert line_distance(joint["origin"], pivot, axis) < 0.15
+
+
+def test_edge_hinges_turn_about_the_two_ends_of_the_slab():
+    rng = np.random.default_rng(4)
+    slab = box_surface([0, 0, 0], [1.0, 0.05, 2.0], 5000, rng)
+    rot, _ = hinge_motion([0, 0, 1], [0, 0, 0], 40.0)
+    candidates = edge_hinges(fit_plane(slab), rot)
+    assert len(candidates) == 2
+    fixed = []
+    for r, t in candidates:
+        np.testing.assert_allclose(r, rot)
+        # Points of the turning line stay put: one candidate holds x = 0, the other x = 1.
+        ends = np.array([[0.0, 0.025, 1.0], [1.0, 0.025, 1.0]])
+        fixed.append(np.linalg.norm(ends @ r.T + t - ends, axis=1).argmin())
+    assert sorted(fixed) == [0, 1]
+
+
+def test_rod_hinges_contain_the_turn_of_a_lever():
+    rng = np.random.default_rng(5)
+    lever = box_surface([0, -0.02, -0.02], [0.4, 0.02, 0.02], 2000, rng)
+    rot, trans = hinge_motion([0, 0, 1], [0.0, 0.0, 0.0], 55.0)
+    candidates = rod_hinges(fit_plane(lever), fit_plane(lever @ rot.T + trans))
+    probe = np.array([[0.4, 0.0, 0.0], [0.2, 0.02, 0.0]])
+    errors = [np.abs(probe @ r.T + t - (probe @ rot.T + trans)).max() for r, t in candidates]
+    assert len(candidates) == 2 and min(errors) < 0.02
+    assert rod_hinges(fit_plane(lever), fit_plane(lever + np.array([0, 0.3, 0]))) == []
+
+
+HINGE_OFFSET = np.array([0.025, 0.0, 0.0])  # a lever's axis from its base corner
+
+
+def faucet(n=30000, seed=6):
+    """A faucet-like body (a tall box and a spout) with two small levers on top, each 2 % of
+    the points, turning about vertical axes through their own base by 50 and -40 degrees."""
+    rng = np.random.default_rng(seed)
+    bases = [np.array([0.3, 0.5, 1.0]), np.array([0.3, -0.5, 1.0])]
+    angles = [50.0, -40.0]
+
+    def lever(base):
+        return box_surface(base + np.array([0.0, -0.025, 0.0]), base + np.array([0.3, 0.025, 0.05]),
+                           int(0.02 * n), rng)
+
+    def state(open_):
+        body = box_surface([0, -0.7, 0], [0.6, 0.7, 1.0], int(0.8 * n), rng)
+        spout = box_surface([0.6, -0.1, 0.7], [1.2, 0.1, 0.85], int(0.16 * n), rng)
+        levers = []
+        for base, angle in zip(bases, angles, strict=True):
+            piece = lever(base)
+            if open_:
+                rot, trans = hinge_motion([0, 0, 1], base + HINGE_OFFSET, angle)
+                piece = piece @ rot.T + trans
+            levers.append(piece)
+        return np.concatenate([body, spout, *levers])
+
+    return state(False), state(True), bases, angles
+
+
+def test_small_levers_are_found_and_turn():
+    start, end, bases, _ = faucet()
+    result = coarse_init(start, end)
+    assert result.num_parts == 3, result.notes
+    joints = PartMotion.from_rt(result.motions, dtype=torch.float64).joints(np.zeros(3))
+    assert [j["type"] for j in joints] == ["revolute", "revolute"]
+    got = sorted(round(j["angle_deg"]) for j in joints)
+    assert abs(got[0] - 40) <= 7 and abs(got[1] - 50) <= 7  # the far side of a slide: 0
+    for j in joints:
+        assert angle_between(j["axis"], [0, 0, 1]) < 5.0
+        nearest = min(line_distance(j["origin"], b + HINGE_OFFSET, np.array([0, 0, 1.0]))
+                      for b in bases)
+        assert nearest < 0.1  # the lever's other end is 0.3 away
