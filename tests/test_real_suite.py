@@ -110,14 +110,12 @@ TINY_BUDGET = "quick:150"
 # Training is deterministic (same outputs on re-runs), so an xfail here fails reliably; strict,
 # so a fix shows up as XPASS and the mark must go.
 SMALL_OBJECTS = [
-    pytest.param("scissors", marks=pytest.mark.xfail(strict=True, reason=(
-        "stage 2 estimates K = 3 for one moving blade: a second, spurious hinge part"))),
+    "scissors",
     "box",
     pytest.param("eyeglasses", marks=pytest.mark.xfail(strict=True, reason=(
-        "thin temples: stage 2 finds K = 4 with a slide at this budget (at quick it rejects "
-        "the temples' components as barely moving and finds K = 2)"))),
-    pytest.param("faucet", marks=pytest.mark.xfail(strict=True, reason=(
-        "small lever handles: K = 3 is right but one lever is taken for a slide"))),
+        "thin temples: stage 2 does not yet find both temples as their own hinges (at quick "
+        "it finds K = 2: one temple merged or rejected as barely moving)"))),
+    "faucet",
 ]
 
 
