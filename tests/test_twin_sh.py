@@ -6,9 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from gear.cli import main
+from gear.commands.render import ELEVATION_DEG, orbit_cameras, up_vector
 from gear.export.bundle import export_twin
 from gear.sh import SH_C0, sh_to_rgb
 from gear.sh_rotation import rotate_sh
@@ -103,3 +105,17 @@ def test_a_bad_f_rest_count_is_a_one_line_error(tmp_path, capsys):
     assert main(["render", str(run), "--views", "1", "--res", "16"]) == 1
     err = capsys.readouterr().err.strip()
     assert "8 f_rest_* properties" in err and len(err.splitlines()) == 1
+
+
+def test_render_command_images_show_the_view_dependent_colour(sh_run, tmp_path):
+    dest = tmp_path / "renders"
+    assert main(["render", str(sh_run), "--t", "0.5", "--views", "2", "--res", "32",
+                 "--background", "0", "0", "0", "--out", str(dest)]) == 0
+    twin = Twin.load(sh_run)
+    center, radius = twin.bounds([0.0, 0.5, 1.0])  # the command frames every state it shows
+    cams = orbit_cameras(center, radius, np.array([0.0, 180.0]), ELEVATION_DEG,
+                         up_vector("z"), 32)
+    for v, cam in enumerate(cams):
+        got = np.asarray(Image.open(dest / "s0.500" / f"{v:03d}.png")).astype(float)
+        want = np.round(np.clip(twin.render(0.5, cam).features.numpy(), 0, 1) * 255)
+        assert np.abs(got - want).max() <= 1.0  # uint8 rounding

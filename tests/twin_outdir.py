@@ -75,7 +75,7 @@ def moved(points: np.ndarray, parts: np.ndarray, fraction: float) -> np.ndarray:
 
 def toy_gaussians(canonical: str = "start", seed: int = 0, sh_degree: int = 0) -> Gaussians:
     """The toy's trained Gaussians in the `canonical` state (part logits included); with
-    `sh_degree` > 0 they carry random SH bands 1..sh_degree."""
+    `sh_degree` > 0 they carry SH bands 1..sh_degree (random per part, jittered)."""
     rng = np.random.default_rng(seed)
     points, parts = start_points()
     canon = points if canonical == "start" else moved(points, parts, 1.0)
@@ -94,7 +94,9 @@ def toy_gaussians(canonical: str = "start", seed: int = 0, sh_degree: int = 0) -
         "logits": torch.tensor(logits, dtype=torch.float32),
     })
     if sh_degree:
-        rest = rng.normal(0.0, 0.15, (n, (sh_degree + 1) ** 2 - 1, 3))
+        # One view-dependent sheen per part (as one material would give), a little jitter.
+        bands = (sh_degree + 1) ** 2 - 1
+        rest = rng.normal(0.0, 0.2, (3, bands, 3))[parts] + rng.normal(0.0, 0.02, (n, bands, 3))
         g.add_param(SH_PARAM, torch.tensor(rest, dtype=torch.float32), 0.0)
     return g
 
