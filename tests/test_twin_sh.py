@@ -18,6 +18,7 @@ from gear.splats import render
 from gear.splats.rendering import rasterizer
 from gear.splats.sh import SH_PARAM, view_rgb
 from gear.twin import PLY_NAME, Twin, TwinError, read_ply_vertices
+from gear.view.scene import part_splats
 from twin_outdir import front_camera, make_out_dir, toy_gaussians
 
 # Twin vs training render: the DC colour goes through float32 f_dc = (rgb - 0.5) / SH_C0 and
@@ -119,3 +120,10 @@ def test_render_command_images_show_the_view_dependent_colour(sh_run, tmp_path):
         got = np.asarray(Image.open(dest / "s0.500" / f"{v:03d}.png")).astype(float)
         want = np.round(np.clip(twin.render(0.5, cam).features.numpy(), 0, 1) * 255)
         assert np.abs(got - want).max() <= 1.0  # uint8 rounding
+
+
+def test_the_viewer_shows_the_degree_0_colour_of_an_sh_twin(sh_run):
+    twin = Twin.load(sh_run)
+    shown = np.concatenate([p.rgb for p in part_splats(twin)])
+    order = np.argsort(twin.parts.numpy(), kind="stable")  # part_splats groups by part
+    np.testing.assert_array_equal(shown, twin.rgb.numpy()[order])
