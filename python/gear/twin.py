@@ -344,7 +344,7 @@ def _sh_bands(ply: Path, props: dict[str, np.ndarray], n: int) -> torch.Tensor |
     count = sum(1 for name in props if name.startswith("f_rest_"))
     if count == 0:
         return None
-    counts = {3 * (coefficient_count(d) - 1): d for d in range(1, MAX_DEGREE + 1)}
+    counts = [3 * (coefficient_count(d) - 1) for d in range(1, MAX_DEGREE + 1)]  # 9, 24, 45
     names = tuple(f"f_rest_{i}" for i in range(count))
     if count not in counts or any(name not in props for name in names):
         raise TwinError(f"{ply}: {count} f_rest_* properties, expected f_rest_0.. with "
