@@ -95,3 +95,19 @@ def test_video_rejects_bad_options(out_dir, tmp_path, capsys, argv, message):
     assert main(["render", str(out_dir), *argv]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("gear: error:") and message in err and "\n" not in err
+
+
+def test_video_of_a_twin_with_sh_has_its_view_dependent_colour(tmp_path):
+    run = make_out_dir(tmp_path / "run", sh_degree=3)
+    video = tmp_path / "sh.mp4"
+    assert main(["render", str(run), "--video", str(video), "--fps", str(FPS),
+                 "--duration", str(SECONDS), "--size", *map(str, SIZE)]) == 0
+    frames, _ = _decode(video)
+    twin = Twin.load(run)
+    dc_only = Twin.load(run)
+    dc_only.sh = None
+    for k in (0, FRAMES // 4, 3 * FRAMES // 4):
+        err = np.abs(frames[k].astype(float) - _render(twin, k)).mean()
+        assert err < CODEC_TOL, f"frame {k}: mean error {err:.2f}"
+        # The degree-0 colour alone would be clearly farther from what the video shows.
+        assert np.abs(frames[k].astype(float) - _render(dc_only, k)).mean() > 2 * err

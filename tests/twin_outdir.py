@@ -21,6 +21,7 @@ from gear.camera import Camera
 from gear.outputs import write_ply
 from gear.run_folder import COMPLETE, write_atomic
 from gear.splats import Gaussians
+from gear.splats.sh import SH_PARAM
 
 HINGE = {"part": 1, "type": "revolute", "axis": [0.0, 0.0, 1.0], "origin": [0.25, -0.25, 0.1],
          "angle_deg": 70.0, "distance": 0.0}
@@ -72,8 +73,9 @@ def moved(points: np.ndarray, parts: np.ndarray, fraction: float) -> np.ndarray:
     return out
 
 
-def make_out_dir(root: Path, canonical: str = "start", seed: int = 0) -> Path:
-    """Writes joints.json, gaussians_canonical.ply, parts.npy and meshes/start/*.ply."""
+def toy_gaussians(canonical: str = "start", seed: int = 0, sh_degree: int = 0) -> Gaussians:
+    """The toy's trained Gaussians in the `canonical` state (part logits included); with
+    `sh_degree` > 0 they carry SH bands 1..sh_degree (random per part, jittered)."""
     rng = np.random.default_rng(seed)
     points, parts = start_points()
     canon = points if canonical == "start" else moved(points, parts, 1.0)
@@ -91,6 +93,20 @@ def make_out_dir(root: Path, canonical: str = "start", seed: int = 0) -> Path:
         "colors": torch.tensor(np.log(rgb / (1 - rgb)), dtype=torch.float32),
         "logits": torch.tensor(logits, dtype=torch.float32),
     })
+    if sh_degree:
+        # One view-dependent sheen per part (as one material would give), a little jitter.
+        bands = (sh_degree + 1) ** 2 - 1
+        rest = rng.normal(0.0, 0.2, (3, bands, 3))[parts] + rng.normal(0.0, 0.02, (n, bands, 3))
+        g.add_param(SH_PARAM, torch.tensor(rest, dtype=torch.float32), 0.0)
+    return g
+
+
+def make_out_dir(root: Path, canonical: str = "start", seed: int = 0,
+                 sh_degree: int = 0) -> Path:
+    """Writes joints.json, gaussians_canonical.ply (the toy_gaussians), parts.npy and
+    meshes/{start,end}/*.ply."""
+    _, parts = start_points()
+    g = toy_gaussians(canonical, seed, sh_degree)
     root.mkdir(parents=True, exist_ok=True)
     write_ply(root / "gaussians_canonical.ply", g)
     np.save(root / "parts.npy", parts.astype(np.int64))

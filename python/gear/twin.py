@@ -7,6 +7,11 @@ reads them and `Twin.pose(s)` moves every Gaussian rigidly with its part to stat
 start state, 1 the end state, and in between a revolute part has turned by s * angle about its
 axis, a prismatic part slid s * distance along its axis (the joint's screw motion, as in
 training).
+
+When the PLY carries higher spherical-harmonic bands (`f_rest_*`, degree 1..3) the twin keeps
+them in the canonical frame, and every render evaluates them for its camera exactly as training
+does (gear.splats.sh.view_rgb); `Twin.posed_sh(s)` gives them turned into a posed state's frame
+for files that store posed Gaussians.
 """
 
 from __future__ import annotations
@@ -28,13 +33,15 @@ from gear.kinematics import (
     quat_identity,
     quat_to_matrix,
 )
+from gear.sh import MAX_DEGREE, SH_C0, coefficient_count
+from gear.sh_rotation import rotate_sh
+from gear.splats.sh import SH_PARAM
 
 PLY_NAME = "gaussians_canonical.ply"
 PARTS_NAME = "parts.npy"
 JOINTS_NAME = "joints.json"
 STATE_VALUE = {"start": 0.0, "end": 1.0}
 VISIBLE_OPACITY = 0.1  # Gaussians fainter than this do not decide where the object is
-SH_C0 = 0.28209479177387814  # degree-0 spherical harmonic: rgb = 0.5 + SH_C0 * f_dc
 # Vertex properties a Gaussian PLY must carry (3D Gaussian Splatting names).
 REQUIRED_PROPERTIES = (
     "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
@@ -216,6 +223,17 @@ class Twin:
     parts: torch.Tensor  # [N] int64: 0 static, k moved by joints[k-1]
     joints: list[TwinJoint]
     canonical: str  # "start" | "end": the state the Gaussians are stored in
+    sh: torch.Tensor | None = None  # [N, (d+1)^2 - 1, 3] SH bands 1..d (canonical frame)
+
+    @property
+    def params(self) -> dict[str, torch.Tensor]:
+        """The stored parameters the renderer looks up beyond `splat_arrays` (as on
+        gear.splats.Gaussians): the SH coefficients when the twin has them."""
+        return {} if self.sh is None else {SH_PARAM: self.sh}
+
+    @property
+    def sh_degree(self) -> int:
+        return 0 if self.sh is None else round(math.sqrt(self.sh.shape[1] + 1)) - 1
 
     @property
     def num_parts(self) -> int:
@@ -254,6 +272,7 @@ class Twin:
             parts=torch.as_tensor(parts, dtype=torch.int64),
             joints=joints,
             canonical=canonical,
+            sh=_sh_bands(ply, props, len(table)),
         )
 
     def part_motions(self, s: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -269,6 +288,21 @@ class Twin:
         qr, qd = self.part_motions(s)
         means, quats = pose_parts(self.means.double(), self.quats.double(), self.parts, qr, qd)
         return means.float(), quats.float()
+
+    def posed_sh(self, s: float) -> torch.Tensor | None:
+        """The SH coefficients [N, (d+1)^2 - 1, 3] of the Gaussians posed at state s, in the
+        world frame (each part's bands turned with it), or None without them. Rendering does
+        not need this (it turns the view direction back instead); a file holding posed
+        Gaussians does."""
+        if self.sh is None:
+            return None
+        qr, _ = self.part_motions(s)
+        out = self.sh.clone()
+        for k in range(self.num_parts):
+            rows = self.parts == k
+            if k and bool(rows.any()):
+                out[rows] = rotate_sh(self.sh[rows], quat_to_matrix(qr[k]))
+        return out
 
     def splat_arrays(self) -> tuple[torch.Tensor, ...]:
         """(means, quats, log_scales, opacity logits, rgb) in the canonical state."""
@@ -302,6 +336,26 @@ class Twin:
 
 def _f32(array: np.ndarray) -> torch.Tensor:
     return torch.as_tensor(np.ascontiguousarray(array), dtype=torch.float32)
+
+
+def _sh_bands(ply: Path, props: dict[str, np.ndarray], n: int) -> torch.Tensor | None:
+    """[N, K-1, 3] from the `f_rest_*` properties (channel-major: all of red's coefficients,
+    then green's, then blue's), or None when the PLY has none."""
+    count = sum(1 for name in props if name.startswith("f_rest_"))
+    if count == 0:
+        return None
+    counts = [3 * (coefficient_count(d) - 1) for d in range(1, MAX_DEGREE + 1)]  # 9, 24, 45
+    names = tuple(f"f_rest_{i}" for i in range(count))
+    if count not in counts or any(name not in props for name in names):
+        raise TwinError(f"{ply}: {count} f_rest_* properties, expected f_rest_0.. with "
+                        f"{', '.join(map(str, counts))} of them (3, 8 or 15 per colour channel: "
+                        "SH degree 1, 2 or 3)")
+    rest = _float_column(props, names)
+    bad = ~np.isfinite(rest).all(axis=1)
+    if bad.any():
+        raise TwinError(f"{ply}: {int(bad.sum())} Gaussian(s) with non-finite f_rest_* values "
+                        f"(first: vertex {int(np.argmax(bad))})")
+    return _f32(rest.reshape(n, 3, count // 3).transpose(0, 2, 1))
 
 
 def _check_state(s: float) -> float:

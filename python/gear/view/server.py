@@ -127,7 +127,8 @@ class TwinViewer:
                 slider.on_update(lambda _, i=i: self._move_joint(i))
                 self.joint_sliders.append(slider)
         self.color_mode = gui.add_dropdown("colour", COLOR_MODES, initial_value="rgb",
-                                           hint="trained colours, or a flat colour per part")
+                                           hint="trained colours (their view-independent "
+                                                "part), or a flat colour per part")
         self.show_gaussians = gui.add_checkbox("Gaussians", True)
         self.show_meshes = gui.add_checkbox("meshes", False, disabled=not self.mesh_handles)
         self.show_axes = gui.add_checkbox("joint axes", True)
