@@ -107,14 +107,16 @@ def test_suite_cli_errors(tmp_path, capsys):
 # Small enough to run in the test suite, large enough for the pipeline to see the parts.
 TINY = dict(res=64, views=16, test_views=0)
 TINY_BUDGET = "quick:150"
-# Training is deterministic (same outputs on re-runs), so an xfail here fails reliably; strict,
-# so a fix shows up as XPASS and the mark must go.
+# Training is deterministic on one machine, but float rounding differs between CPUs (vector
+# widths in torch and the rasterizer), so an object on the edge of being recovered can pass on one
+# machine and fail on another: its xfail is not strict.
 SMALL_OBJECTS = [
     "scissors",
     "box",
-    pytest.param("eyeglasses", marks=pytest.mark.xfail(strict=True, reason=(
-        "thin temples: stage 2 does not yet find both temples as their own hinges (at quick "
-        "it finds K = 2: one temple merged or rejected as barely moving)"))),
+    pytest.param("eyeglasses", marks=pytest.mark.xfail(strict=False, reason=(
+        "thin temples: stage 2 does not reliably find both temples as their own hinges (on "
+        "some CPUs it finds K = 2 at this budget: one temple merged or rejected as barely "
+        "moving)"))),
     "faucet",
 ]
 
