@@ -152,8 +152,7 @@ def _split_by_motion(split: VoxelSplit, mask: np.ndarray, motion: Hypothesis) ->
 
 
 def _moves_on_its_own(
-    split: VoxelSplit, piece: np.ndarray, points: np.ndarray, target: np.ndarray,
-    target_labels: np.ndarray, total: int | None, extent: float,
+    split: VoxelSplit, piece: np.ndarray, points: np.ndarray, total: int | None, extent: float,
 ) -> bool:
     """Whether the cells `piece` (holding `points`) are a part of their own: at least 4
     centres (with K unknown, `total` canonical centres, _large_enough), and a motion that lands
@@ -163,7 +162,7 @@ def _moves_on_its_own(
     (the images, not the voxels, tell a fold)."""
     if len(points) < 4 or (total is not None and not _large_enough(points, total, extent)):
         return False
-    own = init_motion(split, piece, points, target, target_labels)[0]
+    own = init_motion(split, piece, points)[0]
     if own.fold:
         return False
     return own.explained >= DETECT_OVERLAP and own.landed >= 1 - SPLIT_FRACTION
@@ -202,7 +201,6 @@ def find_parts(
     split = split_static_dynamic(canon, target, voxel_size, dilation_radius)
     pieces = split.labels[0].copy()
     canon_labels = split.grid.point_labels(canon, pieces)
-    target_labels = split.grid.point_labels(target, split.labels[1])
     sizes = split.sizes[0]
     notes = [
         f"voxel size {voxel_size:.4g}: {len(sizes)} canonical and {len(split.sizes[1])} target "
@@ -234,7 +232,7 @@ def find_parts(
             continue
         if wanted is None and not _large_enough(points, len(canon), extent):
             continue
-        hyps = init_motion(split, mask, points, target, target_labels)
+        hyps = init_motion(split, mask, points)
         cells = np.argwhere(mask)
         # Any reading of a part counts: a safe door's dial, a component of its own, moves
         # with the door only under the half turn that may not be the door's first reading.
@@ -255,9 +253,8 @@ def find_parts(
             # lever, missed by its slightly wrong first turn, is neither.
             widest = max(hyps, key=lambda h: h.landed)
             rest = [piece for piece in _split_by_motion(split, mask, widest)
-                    if _moves_on_its_own(split, piece, canon[points_in(piece)], target,
-                                         target_labels, len(canon) if wanted is None else None,
-                                         extent)]
+                    if _moves_on_its_own(split, piece, canon[points_in(piece)],
+                                         len(canon) if wanted is None else None, extent)]
             for piece in rest:
                 mask &= ~piece
                 pieces[piece] = next_label
@@ -270,7 +267,7 @@ def find_parts(
                 points = canon[canon_labels == comp]
                 if len(points) < 4:
                     continue
-                hyps = init_motion(split, mask, points, target, target_labels)
+                hyps = init_motion(split, mask, points)
         detected = hyps[0].explained >= DETECT_OVERLAP
         if detected and wanted is None and on_surface is not None:
             seen = seen_change(points, hyps[0], on_surface, SURFACE_TOLERANCE_VOXELS * voxel_size)

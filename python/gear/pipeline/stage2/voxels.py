@@ -85,6 +85,9 @@ class VoxelSplit:
     sizes: tuple[np.ndarray, np.ndarray]  # voxel counts per label, largest first
     target_tree: cKDTree  # the target centres
     spacing: float  # their median distance to the nearest other centre
+    # Target pieces a canonical piece may turn onto (init_motion): (voxels, mask over the
+    # target centres), largest first (see target_pieces).
+    pieces: list[tuple[int, np.ndarray]]
 
     def score(
         self, src_cells: np.ndarray, kind: str, rot: np.ndarray, trans: np.ndarray
@@ -164,21 +167,43 @@ def split_static_dynamic(
     tree = cKDTree(target)
     sample = target[:: max(1, len(target) // SPACING_SAMPLES)]
     spacing = float(np.median(tree.query(sample, k=2)[0][:, 1]))
+    pieces = target_pieces(grid, target, labels[1], sizes[1])
     return VoxelSplit(grid, occ_t, near_occ, near_dyn, (labels[0], labels[1]), (sizes[0], sizes[1]),
-                      tree, max(spacing, 1e-12 * voxel_size))
+                      tree, max(spacing, 1e-12 * voxel_size), pieces)
 
 
-def init_motion(
-    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, target: np.ndarray,
-    target_labels: np.ndarray,
-) -> list[Hypothesis]:
+def target_pieces(
+    grid: geometry.VoxelGrid, target: np.ndarray, labels: np.ndarray, sizes: np.ndarray
+) -> list[tuple[int, np.ndarray]]:
+    """The target's dynamic components (the MAX_TARGET_CANDIDATES largest) and, besides them,
+    each group of components that bridging one-voxel gaps joins, as (voxels, mask over the
+    `target` centres), largest first. A thin part (a temple of glasses, a lever) is sampled by
+    few centres: the state where it moved may show it as a string of fragments, none planar
+    or long enough alone to give its turn, while the canonical state shows it whole."""
+    point_labels = grid.point_labels(target, labels)
+    pieces = [(int(size), point_labels == j)
+              for j, size in enumerate(sizes[:MAX_TARGET_CANDIDATES], start=1)]
+    dynamic = labels > 0
+    bridged, _ = geometry.components(geometry.dilate(dynamic, 1), connectivity=26)
+    bridged = np.where(dynamic, bridged, 0)
+    groups = np.unique(bridged[dynamic])
+    for group in groups:
+        cells = bridged == group
+        if len(np.unique(labels[cells])) < 2:
+            continue  # one component: listed already
+        pieces.append((int(cells.sum()), np.isin(point_labels, np.unique(labels[cells]))))
+    pieces.sort(key=lambda piece: -piece[0])
+    return pieces[:2 * MAX_TARGET_CANDIDATES]
+
+
+def init_motion(split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray) -> list[Hypothesis]:
     """Initial motion of the canonical cells `src_mask` (holding the centres `points`), and the
     runner-up of the other kind.
 
-    Candidates: the plane-intersection hinges with every planar target component above a size
-    floor (when the cells' centres are planar), each also about both edges of the slab (the two
-    sides a hinge can be on), the one whose centres land closest (VoxelSplit.surface_fit), and the
-    best whole-voxel slide. Among those
+    Candidates: the plane-intersection hinges with every planar target piece (VoxelSplit.pieces)
+    above a size floor (when the cells' centres are planar), each also about both edges of the
+    slab (the two sides a hinge can be on), the one whose centres land closest
+    (VoxelSplit.surface_fit), and the best whole-voxel slide. Among those
     explaining enough target change, the one landing most cells on target matter wins (a hinge
     on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
     follows when it lands within TIE_MARGIN of the winner (a hinge that close goes first), or
@@ -193,10 +218,10 @@ def init_motion(
     fold_offsets = split.grid.voxel_size * np.arange(-2.0, 2.5, 0.5)
     if canon_plane.is_plane or canon_plane.is_rod:
         floor = max(MIN_PART_VOXELS, 0.2 * len(src_cells))
-        for j, size in enumerate(split.sizes[1][:MAX_TARGET_CANDIDATES], start=1):
+        for size, inside in split.pieces:
             if size < floor:
                 break
-            plane = fit_plane(target[target_labels == j])
+            plane = fit_plane(split.target_tree.data[inside])
             fold = abs(float(np.dot(canon_plane.normal, plane.normal))) > PARALLEL_COS
             turns = []
             if canon_plane.is_plane and plane.is_plane:
