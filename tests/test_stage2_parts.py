@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 
 from gear.articulation import PartMotion
 from gear.pipeline.stage2.hypotheses import edge_hinges, fit_plane, rod_hinges
-from gear.pipeline.stage2.parts import coarse_init
+from gear.pipeline.stage2.parts import _moves_along, coarse_init
 from gear.pipeline.stage2.voxels import Scale, split_static_dynamic
 from test_coarse import FRONT, box_surface, hinge_motion, line_distance
 
@@ -235,3 +235,28 @@ def test_a_thin_part_fragmented_in_one_state_still_turns():
     assert joint["angle_deg"] == pytest.approx(25.0, abs=2.0)
     assert angle_between(joint["axis"], axis) < 3.0
     assert line_distance(joint["origin"], pivot, axis) < 0.05  # the temple is 1 long
+
+
+def test_a_piece_joins_the_part_whose_motion_agrees_with_its_own():
+    """A piece's own best motion may land its few cells a little better than its part's
+    (noise); when the two move its centres to within AGREE_VOXELS it still joins the part, and
+    a motion that puts it elsewhere does not take it."""
+    start, end, bases, angles = faucet()
+    voxel = 0.02
+    split = split_static_dynamic(start, end, voxel)
+    lever = start[-int(0.02 * 30000) * 2 : -int(0.02 * 30000)]  # the first lever's centres
+    cells = np.unique(split.grid.voxel_of(lever), axis=0)
+    rot, trans = hinge_motion([0, 0, 1], bases[0] + HINGE_OFFSET, angles[0])
+    own = split.score(cells, "hinge", rot, trans)
+    assert own.landed > 0.9
+    own.landed = 1.0  # a fit of the piece alone that lands every cell
+
+    def shifted(by_voxels):
+        # The same turn, then lifted by `by_voxels`: the lever lands that far off.
+        lift = np.array([0.0, 0.0, by_voxels * voxel])
+        return split.score(cells, "hinge", rot, trans + lift)
+
+    near, far = shifted(1.9), shifted(6.0)
+    assert near.trusted and near.landed < own.landed - 0.05  # not by landing alone
+    assert _moves_along(split, cells, lever, near, own)
+    assert not _moves_along(split, cells, lever, far, own)

@@ -42,6 +42,9 @@ SURFACE_TOLERANCE_VOXELS = 2.0
 # A piece whose best motion leaves at least this fraction of its cells off target matter is
 # split: the rest gets a motion of its own (_split_by_motion).
 SPLIT_FRACTION = 0.2
+# Two motions of a piece agree when they move its centres to within this many voxels of each
+# other (median): the same rigid part, read from two fragments (_moves_along).
+AGREE_VOXELS = 2.0
 # look(points [M,3], tolerance) -> (on_surface [M] bool, free [M] bool): which points lie on the
 # surface the target state's images show (within `tolerance` in depth) and which points those
 # images see through (empty space).
@@ -104,11 +107,23 @@ def seed_logits(part_of_point: np.ndarray, num_parts: int) -> np.ndarray:
     return logits
 
 
-def _moves_along(split: VoxelSplit, cells: np.ndarray, motion: Hypothesis, own: Hypothesis) -> bool:
-    """Whether a component moves with an existing part: that part's motion explains it (is
-    trusted on its cells) and lands it nearly as well as the component's own best motion."""
+def _moves_along(
+    split: VoxelSplit, cells: np.ndarray, points: np.ndarray, motion: Hypothesis, own: Hypothesis
+) -> bool:
+    """Whether a component (its `cells` and centres `points`) moves with an existing part: that
+    part's motion explains it (is trusted on its cells) and either lands it nearly as well as
+    the component's own best motion or agrees with that motion, moving its centres to within
+    AGREE_VOXELS of where its own motion puts them (median). Both readings fit the same turn
+    of a lever to its two fragments; the small one's own fit may land its few cells a little
+    better, which is noise, not a second part."""
     shared = split.score(cells, motion.kind, motion.rot, motion.trans)
-    return shared.trusted and shared.landed >= own.landed - 0.05
+    if not shared.trusted:
+        return False
+    if shared.landed >= own.landed - 0.05:
+        return True
+    apart = np.linalg.norm(points @ (np.asarray(motion.rot) - np.asarray(own.rot)).T
+                           + (np.asarray(motion.trans) - np.asarray(own.trans)), axis=1)
+    return bool(np.median(apart) <= AGREE_VOXELS * split.grid.voxel_size)
 
 
 @dataclass
@@ -237,7 +252,8 @@ def find_parts(
         # Any reading of a part counts: a safe door's dial, a component of its own, moves
         # with the door only under the half turn that may not be the door's first reading.
         owner = next((p for p in parts
-                      if any(_moves_along(split, cells, h, hyps[0]) for h in p.hypotheses)), None)
+                      if any(_moves_along(split, cells, points, h, hyps[0])
+                             for h in p.hypotheses)), None)
         if owner is not None:
             owner.components.append(comp)
             continue
