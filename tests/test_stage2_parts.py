@@ -260,3 +260,23 @@ def test_a_piece_joins_the_part_whose_motion_agrees_with_its_own():
     assert near.trusted and near.landed < own.landed - 0.05  # not by landing alone
     assert _moves_along(split, cells, lever, near, own)
     assert not _moves_along(split, cells, lever, far, own)
+
+
+def test_a_piece_joins_a_part_that_explains_more_of_its_change():
+    """A piece's own fit may land a few more of its cells on matter that did not change; a
+    part's motion landing it within TIE_MARGIN and explaining at least as much of the change
+    takes it, one explaining less does not."""
+    start, end, bases, angles = faucet()
+    voxel = 0.02
+    split = split_static_dynamic(start, end, voxel)
+    lever = start[-int(0.02 * 30000) * 2 : -int(0.02 * 30000)]  # the first lever's centres
+    cells = np.unique(split.grid.voxel_of(lever), axis=0)
+    # The part's turn about an axis 3 voxels beside the lever's: 2.5 voxels apart on it.
+    rot, trans = hinge_motion([0, 0, 1], bases[0] + HINGE_OFFSET + [0, 3 * voxel, 0], angles[0])
+    shared = split.score(cells, "hinge", rot, trans)
+    own = split.score(cells, "hinge", *hinge_motion([0, 0, 1], bases[0] + HINGE_OFFSET, angles[0]))
+    own.landed = shared.landed + 0.08  # within TIE_MARGIN, not within 0.05
+    own.explained = shared.explained - 0.1
+    assert _moves_along(split, cells, lever, shared, own)
+    own.explained = shared.explained + 0.1
+    assert not _moves_along(split, cells, lever, shared, own)

@@ -15,6 +15,7 @@ from gear.pipeline.stage2.hypotheses import DETECT_OVERLAP, IDENTITY, Hypothesis
 from gear.pipeline.stage2.voxels import (
     MAX_TARGET_CANDIDATES,
     MIN_PART_VOXELS,
+    TIE_MARGIN,
     Scale,
     VoxelSplit,
     init_motion,
@@ -111,8 +112,9 @@ def _moves_along(
     split: VoxelSplit, cells: np.ndarray, points: np.ndarray, motion: Hypothesis, own: Hypothesis
 ) -> bool:
     """Whether a component (its `cells` and centres `points`) moves with an existing part: that
-    part's motion explains it (is trusted on its cells) and either lands it nearly as well as
-    the component's own best motion or agrees with that motion, moving its centres to within
+    part's motion explains it (is trusted on its cells) and lands it nearly as well as the
+    component's own best motion (within TIE_MARGIN when it explains at least as much of the
+    change), or agrees with that motion, moving its centres to within
     AGREE_VOXELS of where its own motion puts them (median). Both readings fit the same turn
     of a lever to its two fragments; the small one's own fit may land its few cells a little
     better, which is noise, not a second part."""
@@ -121,6 +123,8 @@ def _moves_along(
         return False
     if shared.landed >= own.landed - 0.05:
         return True
+    if shared.landed >= own.landed - TIE_MARGIN and shared.explained >= own.explained:
+        return True  # own lands a little more, but on matter that did not change
     apart = np.linalg.norm(points @ (np.asarray(motion.rot) - np.asarray(own.rot)).T
                            + (np.asarray(motion.trans) - np.asarray(own.trans)), axis=1)
     return bool(np.median(apart) <= AGREE_VOXELS * split.grid.voxel_size)
