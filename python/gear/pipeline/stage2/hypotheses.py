@@ -108,9 +108,9 @@ def hinge_candidates(
     arbitrary). Nearly parallel planes have no usable intersection; if `dst` lies beside `src`
     (their centroids apart mostly within the plane) they give the half turns that fold one onto
     the other: a door opened by 180 degrees, which the plane intersection cannot see. The fold
-    axis lies in the (mean) plane across the centroids' offset, through their midpoint moved
-    by each of `fold_offsets` along the offset and along the normal (the two pieces are rarely
-    cut symmetrically about the hinge, nor is the hinge in their plane).
+    axes lie in the (mean) plane (fold_axes), each through the centroids' midpoint moved by
+    each of `fold_offsets` across the axis in the plane and along the normal (the two pieces
+    are rarely cut symmetrically about the hinge, nor is the hinge in their plane).
     """
     cos = float(np.dot(src.normal, dst.normal))
     if abs(cos) > PARALLEL_COS:
@@ -124,15 +124,12 @@ def hinge_candidates(
         # much closer: that is no fold.
         if length < 0.5 * max(src.width_along(beside / length), dst.width_along(beside / length)):
             return []
-        across = beside / length
-        # A half turn reflects a piece's centroid through the axis, so the axis lies in the
-        # plane and across the centroids' offset. (The slab's principal axes would do for a
-        # long door, but a square one has none in its plane.)
         normal = src.normal + np.sign(cos) * dst.normal
-        axis = np.cross(normal / np.linalg.norm(normal), across)
+        normal /= np.linalg.norm(normal)
         mid = (src.centroid + dst.centroid) / 2
         return [
-            rotation_about_line(axis, mid + a * across + b * src.normal, np.pi)
+            rotation_about_line(axis, mid + a * np.cross(normal, axis) + b * src.normal, np.pi)
+            for axis in fold_axes(src, normal, beside / length)
             for a in fold_offsets
             for b in fold_offsets
         ]
@@ -149,6 +146,22 @@ def hinge_candidates(
     pivot = np.linalg.lstsq(system, rhs, rcond=None)[0]
     angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
     return [rotation_about_line(axis, pivot, a) for a in (angle, angle + np.pi)]
+
+
+def fold_axes(src: Plane, normal: np.ndarray, across: np.ndarray) -> list[np.ndarray]:
+    """Axes (unit, in the plane of unit `normal`) a half turn folding the slab `src` onto a
+    piece offset by the in-plane unit direction `across` may turn about. A half turn reflects
+    a piece's centroid through its axis, so the axis lies across the centroids' offset; but the
+    target's piece is often only part of the slab (the rest merges with static matter), which
+    tilts that offset. A door's hinge runs along one of its edges, so the slab's two in-plane
+    principal directions are axes too (a square slab has none worth the name: then the offset
+    decides, through the scores)."""
+    axes = [np.cross(normal, across)]
+    for direction in src.axes[:2]:
+        in_plane = direction - np.dot(direction, normal) * normal
+        if np.linalg.norm(in_plane) > 0.5:
+            axes.append(in_plane / np.linalg.norm(in_plane))
+    return axes
 
 
 def axis_of(rot: np.ndarray) -> np.ndarray:
