@@ -209,3 +209,24 @@ def test_small_hinge_must_beat_its_slide_clearly():
     classify_joints(motion, score=score_with(0.005), init_motions=tie, small_hinge_margin=0.01)
     assert not bool(motion.prismatic[1])
     assert motion.joints(np.zeros(3))[0]["angle_deg"] == pytest.approx(60.0, abs=1e-3)
+
+
+def test_slide_must_beat_a_hinge_that_turned_clearly():
+    """A door that turned 40 degrees in training, with stage 2 torn between hinge and slide:
+    its slide scored 0.5 % below the hinge is a near-tie, and the ε rule keeps the hinge (the
+    old rule made it prismatic on that noise); scored 5 % below, the slide wins."""
+    door = hinge([0, 0, 1], [0.5, 0, 0], 40.0)
+
+    def score_with(slide_lead: float):
+        def score(candidate):
+            return 1.0 - slide_lead if bool(candidate.prismatic[1]) else 1.0
+        return score
+
+    for lead, margin, prismatic in [(0.005, 0.0, True), (0.005, 0.01, False),
+                                    (0.05, 0.01, True)]:
+        motion = PartMotion.from_rt([door])
+        tie = [[door, (np.eye(3), [0.2, 0, 0])]]
+        switched = classify_joints(motion, score=score_with(lead), init_motions=tie,
+                                   small_hinge_margin=margin)
+        assert bool(motion.prismatic[1]) is prismatic, (lead, margin)
+        assert switched == ([1] if prismatic else [])

@@ -280,3 +280,25 @@ def test_a_piece_joins_a_part_that_explains_more_of_its_change():
     assert _moves_along(split, cells, lever, shared, own)
     own.explained = shared.explained + 0.1
     assert not _moves_along(split, cells, lever, shared, own)
+
+def test_a_blob_that_is_neither_plane_nor_rod_turns_on_a_hinge():
+    # A stapler-like head: a chunky box on a base (extents within a factor 1.5 of each other,
+    # no plane, no long direction), raised 80 degrees about its back edge. Without planes or
+    # lines to intersect, only a slide was tried, and the head came out sliding.
+    rng = np.random.default_rng(3)
+    axis, pivot = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.3])
+    rot, trans = hinge_motion(axis, pivot, 80.0)
+
+    def state(open_):
+        base = box_surface([0, 0, 0], [0.5, 1.5, 0.3], 12000, rng)
+        head = box_surface([0.0, 0.0, 0.3], [0.5, 0.6, 0.7], 6000, rng)
+        return np.concatenate([base, head @ rot.T + trans if open_ else head])
+
+    init = coarse_init_seen(state(False), state(True))
+    assert init.num_parts == 2
+    got_rot, got_trans = init.motions[0]
+    want_rot, want_trans = (rot, trans) if init.canonical == "start" else (rot.T, -rot.T @ trans)
+    turn = np.degrees(np.arccos(np.clip((np.trace(got_rot.T @ want_rot) - 1) / 2, -1, 1)))
+    assert turn < 5.0
+    corner = np.array([0.5, 0.6, 0.7])
+    assert np.linalg.norm(got_rot @ corner + got_trans - (want_rot @ corner + want_trans)) < 0.08

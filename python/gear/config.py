@@ -48,8 +48,9 @@ class TrainConfig:
     # Motion-only steps each reading gets before it is scored, so none wins by a head start;
     # 0 = score the readings as they are (docs/method.md, "Joint types").
     classify_tune_steps: int = 30
-    # Relative loss margin a hinge reading below ε must win by: the ε rule as a prior, since a
-    # tuned hinge contains its slide (docs/method.md, "Joint types").
+    # Relative loss margin a reading against the ε rule (a hinge below ε, a slide of a part
+    # that turned beyond it) must win by: the rule as a prior on near-ties, since a tuned hinge
+    # contains its slide (docs/method.md, "Joint types").
     small_hinge_margin: float = 0.01
     em_refine_joint_iterations: int = 10_000  # em-refine: joint optimisation before EM starts
 

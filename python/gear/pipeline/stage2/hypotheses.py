@@ -4,11 +4,12 @@ whole-voxel slides by cross-correlation (docs/method.md, "Stage 2")."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.signal import fftconvolve
+from scipy.spatial import cKDTree
 
 # max/min principal extent above which a component is a plane (may turn on a hinge). Not 3: a
 # door reconstructed from few, small views blurs into what lies behind it (docs/method.md,
@@ -19,6 +20,13 @@ MIN_OVERLAP = 0.1  # overlap / min(|S|, |T|) below this: no motion hypothesis is
 # Counting a piece as a new part (K unknown) needs more: pieces seen in one state only (a
 # cabinet's interior through an open door) reach 10-20 % by chance.
 DETECT_OVERLAP = 0.3
+# Turns of a blob (swept_hinges): angle step, centre samples of the sweep (4x for the best few),
+# translation settling steps of the best few, and how many of the best turns are kept.
+SWEEP_STEP_DEG = 10
+SWEEP_SAMPLES = 100
+SWEEP_SETTLE = 10
+SWEEP_KEEP = 3
+SWEEP_TARGETS = 3  # the largest target pieces a blob's turns start on
 
 
 @dataclass
@@ -108,9 +116,9 @@ def hinge_candidates(
     arbitrary). Nearly parallel planes have no usable intersection; if `dst` lies beside `src`
     (their centroids apart mostly within the plane) they give the half turns that fold one onto
     the other: a door opened by 180 degrees, which the plane intersection cannot see. The fold
-    axis lies in the (mean) plane across the centroids' offset, through their midpoint moved
-    by each of `fold_offsets` along the offset and along the normal (the two pieces are rarely
-    cut symmetrically about the hinge, nor is the hinge in their plane).
+    axes lie in the (mean) plane (fold_axes), each through the centroids' midpoint moved by
+    each of `fold_offsets` across the axis in the plane and along the normal (the two pieces
+    are rarely cut symmetrically about the hinge, nor is the hinge in their plane).
     """
     cos = float(np.dot(src.normal, dst.normal))
     if abs(cos) > PARALLEL_COS:
@@ -124,15 +132,12 @@ def hinge_candidates(
         # much closer: that is no fold.
         if length < 0.5 * max(src.width_along(beside / length), dst.width_along(beside / length)):
             return []
-        across = beside / length
-        # A half turn reflects a piece's centroid through the axis, so the axis lies in the
-        # plane and across the centroids' offset. (The slab's principal axes would do for a
-        # long door, but a square one has none in its plane.)
         normal = src.normal + np.sign(cos) * dst.normal
-        axis = np.cross(normal / np.linalg.norm(normal), across)
+        normal /= np.linalg.norm(normal)
         mid = (src.centroid + dst.centroid) / 2
         return [
-            rotation_about_line(axis, mid + a * across + b * src.normal, np.pi)
+            rotation_about_line(axis, mid + a * np.cross(normal, axis) + b * src.normal, np.pi)
+            for axis in fold_axes(src, normal, beside / length)
             for a in fold_offsets
             for b in fold_offsets
         ]
@@ -149,6 +154,22 @@ def hinge_candidates(
     pivot = np.linalg.lstsq(system, rhs, rcond=None)[0]
     angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
     return [rotation_about_line(axis, pivot, a) for a in (angle, angle + np.pi)]
+
+
+def fold_axes(src: Plane, normal: np.ndarray, across: np.ndarray) -> list[np.ndarray]:
+    """Axes (unit, in the plane of unit `normal`) a half turn folding the slab `src` onto a
+    piece offset by the in-plane unit direction `across` may turn about. A half turn reflects
+    a piece's centroid through its axis, so the axis lies across the centroids' offset; but the
+    target's piece is often only part of the slab (the rest merges with static matter), which
+    tilts that offset. A door's hinge runs along one of its edges, so the slab's two in-plane
+    principal directions are axes too (a square slab has none worth the name: then the offset
+    decides, through the scores)."""
+    axes = [np.cross(normal, across)]
+    for direction in src.axes[:2]:
+        in_plane = direction - np.dot(direction, normal) * normal
+        if np.linalg.norm(in_plane) > 0.5:
+            axes.append(in_plane / np.linalg.norm(in_plane))
+    return axes
 
 
 def axis_of(rot: np.ndarray) -> np.ndarray:
@@ -204,3 +225,58 @@ def correlate(grid: np.ndarray, src: np.ndarray) -> tuple[np.ndarray, np.ndarray
     crop = src[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
     counts = np.rint(fftconvolve(grid.astype(np.float32), crop[::-1, ::-1, ::-1], mode="full"))
     return counts, -(np.array(crop.shape) - 1) - lo
+
+
+def settle(
+    sample: np.ndarray, rot: np.ndarray, trans: np.ndarray, tree: cKDTree, steps: int
+) -> np.ndarray:
+    """The translation after `steps` moves of `sample` (turned by `rot`) by the mean offset
+    to the nearest centre of `tree` of its nearest 80 % (the part of a piece the target state
+    hides, a lid's underside on its base, must not drag the rest)."""
+    for _ in range(steps):
+        moved = sample @ rot.T + trans
+        dist, index = tree.query(moved, k=1)
+        near = dist <= np.percentile(dist, 80)
+        trans = trans + (tree.data[index[near]] - moved[near]).mean(axis=0)
+    return trans
+
+
+def swept_hinges(
+    points: np.ndarray,
+    axes: Sequence[np.ndarray],
+    starts: Sequence[np.ndarray],
+    tree: cKDTree,
+    fit: Callable[[np.ndarray, np.ndarray, np.ndarray], float],
+    keep: int = SWEEP_KEEP,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Turns of a piece with neither a plane nor a long direction (a stapler's lid that a short
+    stage 1 leaves a blob): no two planes or lines to intersect, so each axis direction of
+    `axes` (near-duplicates skipped) is swept through every SWEEP_STEP_DEG. Each turn first
+    puts the piece's centroid on each of `starts` (where target pieces are), then settles its
+    translation on the target centres (`tree`, settle): briefly for every turn, longer for the
+    best few. The `keep` turns that `fit(points, R, t)` (higher is better, on a sample of the
+    centres) scores best are returned as (R, t): a hinge about a line of that direction, plus
+    whatever slide along it the scores allow."""
+    pts = np.asarray(points, dtype=np.float64)
+    centroid = pts.mean(axis=0)
+    coarse = pts[:: max(1, len(pts) // SWEEP_SAMPLES)]
+    unique: list[np.ndarray] = []
+    for axis in axes:
+        a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+        if all(abs(float(a @ b)) < PARALLEL_COS for b in unique):
+            unique.append(a)
+    scored = []
+    for a in unique:
+        for angle in np.deg2rad(np.arange(SWEEP_STEP_DEG, 360, SWEEP_STEP_DEG)):
+            rot, _ = rotation_about_line(a, np.zeros(3), float(angle))
+            for start in starts:
+                trans = settle(coarse, rot, np.asarray(start) - rot @ centroid, tree, 2)
+                scored.append((fit(coarse, rot, trans), rot, trans))
+    scored.sort(key=lambda s: -s[0])
+    fine = pts[:: max(1, len(pts) // (4 * SWEEP_SAMPLES))]
+    refined = []
+    for _, rot, trans in scored[: 3 * keep]:
+        trans = settle(fine, rot, trans, tree, SWEEP_SETTLE)
+        refined.append((fit(fine, rot, trans), rot, trans))
+    refined.sort(key=lambda s: -s[0])
+    return [(rot, trans) for _, rot, trans in refined[:keep]]

@@ -15,12 +15,14 @@ from gear.pipeline.stage2.hypotheses import (
     IDENTITY,
     MIN_OVERLAP,
     PARALLEL_COS,
+    SWEEP_TARGETS,
     Hypothesis,
     correlate,
     edge_hinges,
     fit_plane,
     hinge_candidates,
     rod_hinges,
+    swept_hinges,
 )
 
 # A hinge and a slide landing within this fraction of each other are both kept as candidates
@@ -36,6 +38,8 @@ CELLS_MULTI = 100
 SPACING_FACTOR = 2.0
 MIN_PART_VOXELS = 8  # a component smaller than this is no part
 FOLD_MARGIN = 0.15  # surface_fit a half-turn fold needs above a turn to go first
+BLOB_MARGIN = 0.05  # surface_fit a blob's turn needs above the best slide to be tried
+BLOB_LANDED = 0.8  # ... and the fraction of its cells it must land on target matter
 
 MAX_TARGET_CANDIDATES = 16
 MAX_DENSE_CELLS = 1 << 26
@@ -196,6 +200,35 @@ def target_pieces(
     return pieces[:2 * MAX_TARGET_CANDIDATES]
 
 
+def blob_hinges(
+    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Turns of the cells `src_mask` holding `points`, a piece that is neither a plane nor a
+    rod (hypotheses.swept_hinges): about its own principal axes, the target's and those of the
+    largest target pieces (at least a fifth of its size). A sweep over so many axes, angles
+    and starts also fits part of a drawer or of a noise blob somewhere, so only turns that
+    land nearly all of the piece (BLOB_LANDED of its cells on target matter) and its centres
+    closer than the best slide does (by BLOB_MARGIN in VoxelSplit.surface_fit) are kept: two
+    touching parts, one blob, are left to the slide and the split by motion."""
+    floor = max(MIN_PART_VOXELS, 0.2 * int(src_mask.sum()))
+    target = split.target_tree.data
+    pieces = [target[inside] for size, inside in split.pieces[:SWEEP_TARGETS] if size >= floor]
+    planes = [fit_plane(piece) for piece in pieces]
+    axes = [*fit_plane(points).axes, *fit_plane(target).axes, *(a for p in planes for a in p.axes)]
+    # Its centroid and points a quarter of its two largest extents away: the target's piece
+    # is often a different part of the blob than the canonical one, so centroids mislead.
+    starts = [p.centroid + f * e * a for p in planes
+              for e, a in zip(p.extents[:2], p.axes[:2], strict=True) for f in (-0.25, 0.25)]
+    starts += [p.centroid for p in planes]
+    shift = split.best_slide(src_mask)
+    slide_fit = 0.0 if shift is None else split.surface_fit(points, np.eye(3), shift)
+    cells = np.argwhere(src_mask)
+    return [(r, t) for r, t in swept_hinges(points, axes, starts, split.target_tree,
+                                            split.surface_fit)
+            if split.surface_fit(points, r, t) > slide_fit + BLOB_MARGIN
+            and split.score(cells, "hinge", r, t).landed >= BLOB_LANDED]
+
+
 def init_motion(split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray) -> list[Hypothesis]:
     """Initial motion of the canonical cells `src_mask` (holding the centres `points`), and the
     runner-up of the other kind.
@@ -234,6 +267,9 @@ def init_motion(split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray) -> 
                     hyp = split.score(src_cells, "hinge", r, t)
                     hyp.fold = folded
                     candidates.append(hyp)
+    else:
+        blobs = blob_hinges(split, src_mask, points)
+        candidates += [split.score(src_cells, "hinge", r, t) for r, t in blobs]
     hinges = [h for h in candidates if h.trusted]
     candidates = []
     # Per family (turns, half-turn folds), the hinge whose moved centres lie closest to the
