@@ -188,7 +188,8 @@ fn forward_errors(scene: &OwnedGaussians, cam: &Camera, depth: bool) -> (ImageEr
     let reference = reference::forward(&scene.view(), cam, &opts).unwrap();
     let (mut image, mut depth_err) = (ImageError::default(), ImageError::default());
     for subgroups in subgroup_choices() {
-        let (gpu, _) = forward_impl(&scene.view(), cam, &opts, subgroups, true, None, false).unwrap();
+        let (gpu, _) =
+            forward_impl(&scene.view(), cam, &opts, subgroups, true, None, false).unwrap();
         image = image
             .worst(ImageError::of(&gpu.features, &reference.features))
             .worst(ImageError::of(&gpu.alpha, &reference.alpha));
@@ -251,7 +252,8 @@ fn gradients(
     path: BackwardPath,
 ) -> (GaussianGradients<f32>, GaussianGradients<f64>) {
     let opts = options(scene.channels, depth);
-    let (_, state) = forward_impl(&scene.view(), cam, &opts, path.subgroups, true, None, false).unwrap();
+    let (_, state) =
+        forward_impl(&scene.view(), cam, &opts, path.subgroups, true, None, false).unwrap();
     let img = random_image_grads(cam.pixels(), scene.channels, 99);
     let grads = OutputGradients {
         features: &img[0][..],
@@ -387,8 +389,16 @@ fn features_grad_off_keeps_other_gradients() {
                 depth: depth.then_some(&img[2][..]),
             };
             for path in backward_paths() {
-                let (_, state) =
-                    forward_impl(&scene.view(), &cam, &opts, path.subgroups, true, None, false).unwrap();
+                let (_, state) = forward_impl(
+                    &scene.view(),
+                    &cam,
+                    &opts,
+                    path.subgroups,
+                    true,
+                    None,
+                    false,
+                )
+                .unwrap();
                 let run = |features_grad| {
                     let accumulation = path.accumulation;
                     backward_impl(
@@ -694,9 +704,11 @@ fn widened(g: &GaussianGradients<f32>) -> GaussianGradients<f64> {
 /// (the atomics add in another order); returns the number of bands.
 fn banded_matches_whole(scene: &OwnedGaussians, cam: &Camera, depth: bool, limit: u64) -> usize {
     let opts = options(scene.channels, depth);
-    let (whole, whole_state) = forward_impl(&scene.view(), cam, &opts, true, true, None, false).unwrap();
+    let (whole, whole_state) =
+        forward_impl(&scene.view(), cam, &opts, true, true, None, false).unwrap();
     assert_eq!(whole_state.bands(), 1);
-    let (banded, state) = forward_impl(&scene.view(), cam, &opts, true, true, Some(limit), false).unwrap();
+    let (banded, state) =
+        forward_impl(&scene.view(), cam, &opts, true, true, Some(limit), false).unwrap();
     assert!(
         banded == whole,
         "banded images differ from the whole frame's"
@@ -839,22 +851,35 @@ fn blend_counters_match_the_cpu_executor() {
         let mut quad_evaluations = Vec::new();
         for subgroups in subgroup_choices() {
             let view = scene.view();
-            let (plain, _) = forward_impl(&view, &cam, &opts, subgroups, true, None, false).unwrap();
+            let (plain, _) =
+                forward_impl(&view, &cam, &opts, subgroups, true, None, false).unwrap();
             let (counted, state) =
                 forward_impl(&view, &cam, &opts, subgroups, true, None, true).unwrap();
-            assert_eq!(plain, counted, "subgroups {subgroups}: counting changed the images");
+            assert_eq!(
+                plain, counted,
+                "subgroups {subgroups}: counting changed the images"
+            );
             let gpu = state.counts.unwrap();
             eprintln!("{width}x{height} subgroups {subgroups}: wgpu {gpu:?}, cpu {cpu:?}");
             let near = |a: u64, b: u64| a.abs_diff(b) as f64 <= 1e-3 * b as f64;
             assert!(cpu.contributions > 1_000, "{cpu:?}");
-            assert!(near(gpu.row_evaluations, cpu.evaluations), "{gpu:?} {cpu:?}");
-            assert!(near(gpu.contributions, cpu.contributions), "{gpu:?} {cpu:?}");
+            assert!(
+                near(gpu.row_evaluations, cpu.evaluations),
+                "{gpu:?} {cpu:?}"
+            );
+            assert!(
+                near(gpu.contributions, cpu.contributions),
+                "{gpu:?} {cpu:?}"
+            );
             assert!(gpu.contributions <= gpu.quad_evaluations, "{gpu:?}");
             if !subgroups {
                 assert!(gpu.quad_evaluations <= gpu.row_evaluations, "{gpu:?}");
             }
             quad_evaluations.push(gpu.quad_evaluations);
         }
-        assert!(quad_evaluations.windows(2).all(|w| w[0] <= w[1]), "{quad_evaluations:?}");
+        assert!(
+            quad_evaluations.windows(2).all(|w| w[0] <= w[1]),
+            "{quad_evaluations:?}"
+        );
     }
 }
