@@ -45,15 +45,20 @@ def test_counted_wgpu_forward_renders_the_same_and_counts_like_the_cpu_executor(
 
 
 @pytest.fixture(scope="module")
-def scene_and_runs(tmp_path_factory) -> tuple[Path, Path, Path]:
+def scene_and_runs(tmp_path_factory) -> tuple[Path, Path, Path, Path]:
     root = tmp_path_factory.mktemp("bench_raster")
     scene = generate("fridge", root / "scene", res=24, views=3, test_views=1)
     finished = make_out_dir(root / "finished")
-    stage1 = root / "stage1"
-    payload = {"stage": "stage1-end", "iteration": 7,
-               "models": {"end": checkpoint.gaussians_state(toy_gaussians("end"))}}
+    stage1 = root / "stage1"  # interrupted in stage 1 of the end state
+    payload = {"stage": "stage1-end", "iteration": 7, "models": {},
+               "current": checkpoint.gaussians_state(toy_gaussians("end"))}
     checkpoint.save(stage1 / "checkpoints", payload)
-    return scene, finished, stage1
+    stage3 = root / "stage3"  # stage 3 done, outputs not yet written
+    payload = {"stage": "stage3-done", "iteration": 9, "models": {},
+               "coarse": {"canonical": "start"},
+               "refined": {"gaussians": checkpoint.gaussians_state(toy_gaussians("start"))}}
+    checkpoint.save(stage3 / "checkpoints", payload)
+    return scene, finished, stage1, stage3
 
 
 def bench_lines(capsys, *argv: str) -> list[str]:
@@ -62,11 +67,12 @@ def bench_lines(capsys, *argv: str) -> list[str]:
 
 
 def test_checkpoint_runs_time_the_trained_model_from_the_scene_cameras(scene_and_runs, capsys):
-    scene, finished, stage1 = scene_and_runs
+    scene, finished, stage1, stage3 = scene_and_runs
     n = len(toy_gaussians().params["means"])
     for run, what, state in [(finished, "finished run", "start"),
-                             (stage1, "stage-1 model (stage1-end, iteration 7)", "end"),
-                             (stage1 / "checkpoints" / checkpoint.LAST, "stage-1 model", "end")]:
+                             (stage1, "stage1-end model at iteration 7", "end"),
+                             (stage1 / "checkpoints" / checkpoint.LAST, "stage1-end", "end"),
+                             (stage3, "stage-3 model", "start")]:
         lines = bench_lines(capsys, "--checkpoint", str(run), "--scene", str(scene),
                             "--views", "2")
         assert any(what in line and f"{n} Gaussians, state {state}" in line for line in lines)
@@ -80,7 +86,7 @@ def test_checkpoint_runs_time_the_trained_model_from_the_scene_cameras(scene_and
     ("empty", ["--scene"], "not a run folder"),
 ])
 def test_checkpoint_errors_are_one_line(scene_and_runs, tmp_path, capsys, which, argv, expected):
-    scene, finished, _ = scene_and_runs
+    scene, finished, *_ = scene_and_runs
     run = finished if which == "finished" else tmp_path
     extra = [str(scene)] if argv else []
     code = main(["bench", "raster", "--checkpoint", str(run), *argv, *extra])

@@ -104,7 +104,7 @@ Case = tuple[str, list[torch.Tensor], Camera]
 def trained_model(path: Path) -> tuple[list[torch.Tensor], str, str]:
     """The latest model of a run (folder or checkpoint file): its five rasterizer inputs, the
     state ("start" or "end") it is placed in, and what it is. A finished run's exported twin;
-    else the checkpoint's stage-3 model, or its stage-1 model of the state being trained."""
+    else its checkpoint's model in training, else the last model a stage finished."""
     if path.is_dir() and (path / "complete.json").exists():
         twin = Twin.load(path)
         return [t.float() for t in twin.splat_arrays()], twin.canonical, "finished run"
@@ -113,13 +113,20 @@ def trained_model(path: Path) -> tuple[list[torch.Tensor], str, str]:
     if saved is None:
         raise RunFolderError(f"{path}: not a run folder of `gear train` with a checkpoint, nor "
                              f"its checkpoints/{checkpoint.LAST}")
-    if saved.get("refined") is not None:
-        model, state = saved["refined"]["gaussians"], saved["coarse"]["canonical"]
-        what = "stage-3 model"
+    stage = str(saved["stage"])
+    # Stage 1 trains the model of the state in its name; stage 3 the canonical state's.
+    canonical = (saved.get("coarse") or {}).get("canonical")
+    if saved.get("current") is not None:
+        model = saved["current"]
+        state = stage.removeprefix("stage1-") if stage.startswith("stage1-") else canonical
+        what = f"{stage} model at iteration {saved['iteration']}"
+    elif saved.get("refined") is not None:
+        model, state, what = saved["refined"]["gaussians"], canonical, "stage-3 model"
+    elif saved.get("models"):
+        state = canonical or next(reversed(saved["models"]))
+        model, what = saved["models"][state], f"stage-1 model of {state}"
     else:
-        state = str(saved["stage"]).removeprefix("stage1-")
-        model = saved["models"].get(state) or next(iter(saved["models"].values()))
-        what = f"stage-1 model ({saved['stage']}, iteration {saved['iteration']})"
+        raise RunFolderError(f"{path}: its checkpoint holds no model yet")
     arrays = checkpoint.gaussians_from_state(model).splat_arrays()
     return [t.detach().float() for t in arrays], state, what
 
