@@ -186,7 +186,8 @@ pub fn project_backward(variant: PixelVariant) -> ShaderSpec {
 /// The forward blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or
 /// not; dispatched over `blend_tile_group(subgroups)` tiles per workgroup. With `counting`,
 /// the variant that also counts its work into a buffer of [`BLEND_COUNTERS`] words at binding
-/// [`BLEND_COUNTS_BINDING`] (blend_counts_on.wgsl); the normal variant has no such code.
+/// [`BLEND_COUNTS_BINDING`] (blend_counts_on.wgsl); the normal variant calls empty functions
+/// in their place (blend_counts_off.wgsl), which the shader compiler removes.
 pub fn blend(variant: PixelVariant, subgroups: bool, counting: bool) -> ShaderSpec {
     let (name, source) = match (subgroups, counting) {
         (true, false) => ("splat_blend_sg", BLEND_SUBGROUP),
