@@ -46,8 +46,9 @@ pub struct BlendCounts {
     /// Gaussian-pixel evaluations the blend made: the pixels inside the image of every quad
     /// it evaluated.
     pub quad_evaluations: u64,
-    /// The pixels inside the image of every (entry, row) whose row still had a pixel blending
-    /// and whose row span (the widened 1/255 ellipse) met one of the row's pixel centres.
+    /// The CPU executor's rule on the same walk: the pixels inside the image of every
+    /// (entry, row) whose row still had a pixel blending and which that executor's binning
+    /// would mark (blend_counts_on.wgsl).
     pub row_evaluations: u64,
     /// Gaussian-pixel pairs blended.
     pub contributions: u64,

@@ -830,14 +830,14 @@ fn large_frame_renders_on_both_executors() {
 }
 
 /// The counting blend renders exactly what the normal one does, and its counters relate to
-/// the CPU executor's as designed: the same culling rule (the widened 1/255 ellipse on each
-/// pixel row, evaluated only while the row still blends) and the same blending decisions, so
-/// `row_evaluations` and `contributions` equal the CPU executor's `evaluations` and
-/// `contributions` up to the pixels where the two executors' f32 arithmetic decides apart (a
-/// pixel centre within rounding of a widened span's end; an alpha or transmittance on a
-/// cut-off). The wgpu blend decides per quad of four pixels, so the evaluations it makes are
-/// at most the row rule's without subgroups, and with subgroups (where a quad one row needs is
-/// evaluated by every row of the tile) at least as many as without.
+/// the CPU executor's as designed: `row_evaluations` applies the CPU executor's rule (its
+/// binning's row marks, evaluated while the row still blends) to the wgpu walk, and the
+/// blending decisions are the contract's, so it and `contributions` equal the CPU executor's
+/// `evaluations` and `contributions` up to entries the two executors' tile tests list
+/// differently (a widened span barely reaching a tile) and f32 rounding. The wgpu blend decides
+/// per quad of four pixels, so the evaluations it makes are at most the row rule's without
+/// subgroups, and with subgroups (where a quad one row needs is evaluated by every row of the
+/// tile) at least as many as without.
 #[test]
 fn blend_counters_match_the_cpu_executor() {
     for (width, height, scene) in [

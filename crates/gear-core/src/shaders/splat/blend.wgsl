@@ -121,7 +121,7 @@ fn main(
         // A quad whose pixel centres the entry's ellipse misses, or whose pixels have all
         // stopped, would blend nothing: skip it, exponentials included.
         let span = row_span(entry, row.cy);
-        count_row(span, row, live);
+        count_row(entry, span, tile, row, live);
         if tile_any(span_meets(span, row.xs) && !all(left.stopped)) {
             live -= blend_quad(&left, row.xs, row.cy, 0u, row.len, entry, &own, k);
         }
