@@ -58,11 +58,21 @@ impl RasterState {
     /// What the forward pass did: `pairs` ((tile, Gaussian) pairs) for the GPU and CPU
     /// executors; for the CPU also `evaluations` and `contributions` (Gaussian-pixel
     /// evaluations of the blend and those blended), `state_bytes` (held by this state) and
-    /// `backward_bytes` (allocated by a backward with feature gradients). Empty for the reference.
+    /// `backward_bytes` (allocated by a backward with feature gradients); for the GPU after
+    /// `rasterize_forward_counted` also `evaluations` (those its blend made, by quads of four
+    /// pixels), `row_evaluations` (the CPU executor's rule applied to the same walk) and
+    /// `contributions`. Empty for the reference.
     fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let d = PyDict::new(py);
         match &self.kind {
-            StateKind::Gpu(state) => d.set_item("pairs", state.pairs)?,
+            StateKind::Gpu(state) => {
+                d.set_item("pairs", state.pairs)?;
+                if let Some(counts) = state.counts {
+                    d.set_item("evaluations", counts.quad_evaluations)?;
+                    d.set_item("row_evaluations", counts.row_evaluations)?;
+                    d.set_item("contributions", counts.contributions)?;
+                }
+            }
             StateKind::Cpu(state) => {
                 let s = state.stats;
                 d.set_item("pairs", s.pairs)?;
@@ -300,6 +310,16 @@ fn render_gpu(
     Ok((out, StateKind::Gpu(Box::new(state))))
 }
 
+/// As [`render_gpu`] with the counting variant of the blend (its counters in the state).
+fn render_gpu_counted(
+    gaussians: Gaussians<'_>,
+    camera: &Camera,
+    options: &RenderOptions,
+) -> gear_core::Result<(RenderOutput<f32>, StateKind)> {
+    let (out, state) = splat::forward_counted(&gaussians, camera, options)?;
+    Ok((out, StateKind::Gpu(Box::new(state))))
+}
+
 fn render_cpu(
     gaussians: Gaussians<'_>,
     camera: &Camera,
@@ -328,6 +348,12 @@ forward_binding!(
     /// Renders on the GPU. `force_cas` makes the later backward accumulate with the
     /// compare-and-swap loop even where float32 atomics exist (to test that path).
     rasterize_forward => render_gpu
+);
+
+forward_binding!(
+    /// `rasterize_forward` with the blend's work counters (a slower variant, for benchmarks):
+    /// its state's `stats()` has them too.
+    rasterize_forward_counted => render_gpu_counted
 );
 
 forward_binding!(
@@ -483,6 +509,7 @@ fn cpu_threads(py: Python<'_>) -> PyResult<usize> {
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<RasterState>()?;
     m.add_function(wrap_pyfunction!(rasterize_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(rasterize_forward_counted, m)?)?;
     m.add_function(wrap_pyfunction!(rasterize_forward_cpu, m)?)?;
     m.add_function(wrap_pyfunction!(cpu_threads, m)?)?;
     m.add_function(wrap_pyfunction!(rasterize_backward, m)?)?;

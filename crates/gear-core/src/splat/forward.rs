@@ -20,7 +20,7 @@ use crate::gpu::{GpuContext, PooledBuffer};
 use super::frame::Frame;
 use super::kernels::{
     self, dispatch, groups, storage, uniform, CountParams, EmitParams, KernelParams, PixelVariant,
-    RangeParams, GPU_TILE, WG,
+    RangeParams, BLEND_COUNTERS, BLEND_COUNTS_BINDING, GPU_TILE, WG,
 };
 use super::scan::encode_exclusive_scan;
 use super::sort::{bits_for, encode_index_sort, encode_radix_sort, Pairs};
@@ -36,6 +36,44 @@ pub(super) struct Band {
     pub(super) pixel_state: PooledBuffer,
 }
 
+/// Work counters of a counting forward pass's blend ([`forward_counted`]), summed over the
+/// bands. Why two evaluation counts: the wgpu blend decides per quad (four pixels of a tile
+/// row; with subgroups, for all rows of a tile at once) what to evaluate, the CPU executor per
+/// row of eight; `row_evaluations` applies the CPU executor's rule to the same walk, so the
+/// two executors' counts can be compared.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BlendCounts {
+    /// Gaussian-pixel evaluations the blend made: the pixels inside the image of every quad
+    /// it evaluated.
+    pub quad_evaluations: u64,
+    /// The CPU executor's rule on the same walk: the pixels inside the image of every
+    /// (entry, row) whose row still had a pixel blending and which that executor's binning
+    /// would mark (blend_counts_on.wgsl).
+    pub row_evaluations: u64,
+    /// Gaussian-pixel pairs blended.
+    pub contributions: u64,
+}
+
+impl BlendCounts {
+    /// From the counting blend's (low, high) words.
+    fn from_words(words: &[u32]) -> Self {
+        let word = |i: usize| u64::from(words[2 * i]) | (u64::from(words[2 * i + 1]) << 32);
+        BlendCounts {
+            quad_evaluations: word(0),
+            row_evaluations: word(1),
+            contributions: word(2),
+        }
+    }
+
+    fn add(self, other: Self) -> Self {
+        BlendCounts {
+            quad_evaluations: self.quad_evaluations + other.quad_evaluations,
+            row_evaluations: self.row_evaluations + other.row_evaluations,
+            contributions: self.contributions + other.contributions,
+        }
+    }
+}
+
 /// What the backward pass needs from a forward pass, kept on the GPU.
 pub struct ForwardState {
     /// The whole image's frame and its uniform (projection and its backward).
@@ -49,6 +87,8 @@ pub struct ForwardState {
     pub(super) bands: Vec<Band>,
     /// Number of (tile, Gaussian) pairs, summed over the bands.
     pub pairs: u32,
+    /// The blend's work counters, for a counting pass only.
+    pub counts: Option<BlendCounts>,
 }
 
 impl ForwardState {
@@ -88,7 +128,17 @@ pub fn forward(
     camera: &Camera,
     options: &RenderOptions,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
-    forward_impl(gaussians, camera, options, true, false, None)
+    forward_impl(gaussians, camera, options, true, false, None, false)
+}
+
+/// [`forward`] with the counting variant of the blend, which also fills
+/// [`ForwardState::counts`] (one more read-back per band; for benchmarks and tests).
+pub fn forward_counted(
+    gaussians: &Gaussians,
+    camera: &Camera,
+    options: &RenderOptions,
+) -> Result<(RenderOutput<f32>, ForwardState)> {
+    forward_impl(gaussians, camera, options, true, false, None, true)
 }
 
 /// Values per pixel in the largest per-pixel buffer of a band: the image (and, in the
@@ -116,7 +166,8 @@ fn band_rows(width: u32, height: u32, words: u64, limit: u64) -> Result<u32> {
 
 /// [`forward`], optionally without subgroup operations even where the adapter has them,
 /// filling the outputs with NaN first (tests: both paths run, unwritten pixels show), and with
-/// a smaller storage binding limit than the adapter's (tests: bands on small images).
+/// a smaller storage binding limit than the adapter's (tests: bands on small images), and with
+/// the blend's counters (`counting`).
 pub(crate) fn forward_impl(
     gaussians: &Gaussians,
     camera: &Camera,
@@ -124,6 +175,7 @@ pub(crate) fn forward_impl(
     allow_subgroups: bool,
     poison: bool,
     binding_limit: Option<u64>,
+    counting: bool,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
     camera.validate()?;
     gaussians.validate()?;
@@ -179,6 +231,7 @@ pub(crate) fn forward_impl(
         variant,
         subgroups: ctx.info.features.subgroups && allow_subgroups,
         poison,
+        counting,
     };
 
     // Bands to render, as a stack popped top to bottom; a band whose pairs do not fit in a
@@ -196,6 +249,7 @@ pub(crate) fn forward_impl(
     };
     let mut bands = Vec::new();
     let mut total_pairs = 0u32;
+    let mut counts = counting.then(BlendCounts::default);
     let mut first = Some(encoder);
     while let Some((row0, band_height)) = pending.pop() {
         let band = frame.band(row0, band_height);
@@ -215,8 +269,10 @@ pub(crate) fn forward_impl(
             pending.push((row0, upper));
             continue;
         }
-        let state = blend_band(ctx, &shared, band, &offsets, pairs, &mut keep, &mut output)?;
+        let (state, band_counts) =
+            blend_band(ctx, &shared, band, &offsets, pairs, &mut keep, &mut output)?;
         bands.push(state);
+        counts = counts.zip(band_counts).map(|(a, b)| a.add(b));
         total_pairs = total_pairs.saturating_add(pairs);
     }
     drop(keep);
@@ -228,6 +284,7 @@ pub(crate) fn forward_impl(
         projected,
         bands,
         pairs: total_pairs,
+        counts,
     };
     Ok((output, state))
 }
@@ -244,6 +301,8 @@ struct Shared<'a> {
     variant: PixelVariant,
     subgroups: bool,
     poison: bool,
+    /// Blend with the counting variant.
+    counting: bool,
 }
 
 /// Submits `encoder` with the band's tile counts in depth order and their exclusive scan
@@ -287,7 +346,8 @@ fn count_pairs(
 }
 
 /// Emits the band's pairs at `offsets`, sorts them by tile, finds the tile ranges and blends
-/// the band; appends its images (read back) to `output` and returns its state.
+/// the band; appends its images (read back) to `output` and returns its state, and its blend
+/// counters for a counting pass.
 fn blend_band(
     ctx: &'static GpuContext,
     shared: &Shared,
@@ -296,7 +356,7 @@ fn blend_band(
     pairs: u32,
     keep: &mut Vec<PooledBuffer>,
     output: &mut RenderOutput<f32>,
-) -> Result<Band> {
+) -> Result<(Band, Option<BlendCounts>)> {
     let variant = shared.variant;
     let tile_pairs = Pairs {
         keys: ctx.storage::<u32>(pairs as usize)?,
@@ -360,23 +420,40 @@ fn blend_band(
             groups(pairs, WG),
         );
     }
+    let counters = if shared.counting {
+        let buffer = ctx.storage::<u32>(BLEND_COUNTERS)?;
+        encoder.clear_buffer(&buffer.buffer, 0, Some(buffer.size));
+        Some(buffer)
+    } else {
+        None
+    };
+    let mut bindings = vec![
+        (0, storage(shared.projected)),
+        (1, storage(&by_tile.values)),
+        (2, storage(&ranges)),
+        (3, storage(shared.features)),
+        (4, storage(&image)),
+        (5, storage(&pixel_state)),
+        (Frame::BINDING, frame_buffer.as_entire_binding()),
+    ];
+    if let Some(buffer) = &counters {
+        bindings.push((BLEND_COUNTS_BINDING, storage(buffer)));
+    }
     dispatch(
         ctx,
         &mut encoder,
-        &kernels::blend(variant, shared.subgroups),
-        &[
-            (0, storage(shared.projected)),
-            (1, storage(&by_tile.values)),
-            (2, storage(&ranges)),
-            (3, storage(shared.features)),
-            (4, storage(&image)),
-            (5, storage(&pixel_state)),
-            (Frame::BINDING, frame_buffer.as_entire_binding()),
-        ],
+        &kernels::blend(variant, shared.subgroups, shared.counting),
+        &bindings,
         groups(band.tiles(), kernels::blend_tile_group(shared.subgroups)),
     );
     ctx.queue.submit(Some(encoder.finish()));
     let values = ctx.read::<f32>(&image, image_len)?;
+    let counts = match &counters {
+        Some(buffer) => Some(BlendCounts::from_words(
+            &ctx.read::<u32>(buffer, BLEND_COUNTERS)?,
+        )),
+        None => None,
+    };
 
     // The band's rows are contiguous in every row-major output: append them.
     let (features, rest) = values.split_at(pixels * variant.channels);
@@ -386,11 +463,12 @@ fn blend_band(
     if let Some(out) = output.depth.as_mut() {
         out.extend_from_slice(depth);
     }
-    Ok(Band {
+    let state = Band {
         frame: band,
         frame_buffer,
         tile_values: by_tile.values,
         ranges,
         pixel_state,
-    })
+    };
+    Ok((state, counts))
 }

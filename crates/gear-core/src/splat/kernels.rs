@@ -42,6 +42,12 @@ pub fn blend_tile_group(subgroups: bool) -> u32 {
     }
 }
 
+/// 32-bit words of the counting blend's counters: quad evaluations, row-rule evaluations and
+/// contributions, each as (low, high) words.
+pub const BLEND_COUNTERS: usize = 6;
+/// Binding of the counting blend's counters.
+pub const BLEND_COUNTS_BINDING: u32 = 6;
+
 /// Threads per workgroup of the scan's first level, and elements per thread.
 pub const SCAN_WG: u32 = 256;
 pub const SCAN_ITEMS: u32 = 4;
@@ -64,12 +70,14 @@ macro_rules! splat_source {
 
 const PROJECT: &str = splat_source!("common", "level", "project_common", "project");
 const PROJECT_BACKWARD: &str = splat_source!("common", "project_common", "project_backward");
-/// Blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or not.
+/// Blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or not, without
+/// or with its work counters.
 const BLEND_SUBGROUP: &str = splat_source!(
     "common",
     "level",
     "tile_share_subgroup",
     "blend_common",
+    "blend_counts_off",
     "blend"
 );
 const BLEND_ROWS: &str = splat_source!(
@@ -77,6 +85,23 @@ const BLEND_ROWS: &str = splat_source!(
     "level",
     "tile_share_rows",
     "blend_common",
+    "blend_counts_off",
+    "blend"
+);
+const BLEND_SUBGROUP_COUNTED: &str = splat_source!(
+    "common",
+    "level",
+    "tile_share_subgroup",
+    "blend_common",
+    "blend_counts_on",
+    "blend"
+);
+const BLEND_ROWS_COUNTED: &str = splat_source!(
+    "common",
+    "level",
+    "tile_share_rows",
+    "blend_common",
+    "blend_counts_on",
     "blend"
 );
 /// Blend backward's accumulation (native f32 atomics or compare-and-swap), then how its rows
@@ -159,12 +184,16 @@ pub fn project_backward(variant: PixelVariant) -> ShaderSpec {
 }
 
 /// The forward blend, its rows sharing loads over subgroups (needs the SUBGROUP feature) or
-/// not; dispatched over `blend_tile_group(subgroups)` tiles per workgroup.
-pub fn blend(variant: PixelVariant, subgroups: bool) -> ShaderSpec {
-    let (name, source) = if subgroups {
-        ("splat_blend_sg", BLEND_SUBGROUP)
-    } else {
-        ("splat_blend", BLEND_ROWS)
+/// not; dispatched over `blend_tile_group(subgroups)` tiles per workgroup. With `counting`,
+/// the variant that also counts its work into a buffer of [`BLEND_COUNTERS`] words at binding
+/// [`BLEND_COUNTS_BINDING`] (blend_counts_on.wgsl); the normal variant calls empty functions
+/// in their place (blend_counts_off.wgsl), which the shader compiler removes.
+pub fn blend(variant: PixelVariant, subgroups: bool, counting: bool) -> ShaderSpec {
+    let (name, source) = match (subgroups, counting) {
+        (true, false) => ("splat_blend_sg", BLEND_SUBGROUP),
+        (false, false) => ("splat_blend", BLEND_ROWS),
+        (true, true) => ("splat_blend_sg_counted", BLEND_SUBGROUP_COUNTED),
+        (false, true) => ("splat_blend_counted", BLEND_ROWS_COUNTED),
     };
     variant
         .apply(ShaderSpec::new(name, source, "main"))
@@ -423,7 +452,9 @@ mod tests {
                 kernels.push((project_backward(variant), WG));
                 for subgroups in [false, true] {
                     let rows = GPU_TILE * blend_tile_group(subgroups);
-                    kernels.push((blend(variant, subgroups), rows));
+                    for counting in [false, true] {
+                        kernels.push((blend(variant, subgroups, counting), rows));
+                    }
                     for float_atomics in [false, true] {
                         for features_grad in [false, true] {
                             let spec =

@@ -28,7 +28,7 @@ pub(crate) mod kernel_dispatch {
 }
 
 pub use backward::{backward, Accumulation};
-pub use forward::{forward, ForwardState};
+pub use forward::{forward, forward_counted, BlendCounts, ForwardState};
 pub use types::{
     Camera, GaussianGradients, Gaussians, OutputGradients, OwnedGaussians, RenderOptions,
     RenderOutput,

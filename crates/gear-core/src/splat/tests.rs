@@ -188,7 +188,8 @@ fn forward_errors(scene: &OwnedGaussians, cam: &Camera, depth: bool) -> (ImageEr
     let reference = reference::forward(&scene.view(), cam, &opts).unwrap();
     let (mut image, mut depth_err) = (ImageError::default(), ImageError::default());
     for subgroups in subgroup_choices() {
-        let (gpu, _) = forward_impl(&scene.view(), cam, &opts, subgroups, true, None).unwrap();
+        let (gpu, _) =
+            forward_impl(&scene.view(), cam, &opts, subgroups, true, None, false).unwrap();
         image = image
             .worst(ImageError::of(&gpu.features, &reference.features))
             .worst(ImageError::of(&gpu.alpha, &reference.alpha));
@@ -251,7 +252,8 @@ fn gradients(
     path: BackwardPath,
 ) -> (GaussianGradients<f32>, GaussianGradients<f64>) {
     let opts = options(scene.channels, depth);
-    let (_, state) = forward_impl(&scene.view(), cam, &opts, path.subgroups, true, None).unwrap();
+    let (_, state) =
+        forward_impl(&scene.view(), cam, &opts, path.subgroups, true, None, false).unwrap();
     let img = random_image_grads(cam.pixels(), scene.channels, 99);
     let grads = OutputGradients {
         features: &img[0][..],
@@ -387,8 +389,16 @@ fn features_grad_off_keeps_other_gradients() {
                 depth: depth.then_some(&img[2][..]),
             };
             for path in backward_paths() {
-                let (_, state) =
-                    forward_impl(&scene.view(), &cam, &opts, path.subgroups, true, None).unwrap();
+                let (_, state) = forward_impl(
+                    &scene.view(),
+                    &cam,
+                    &opts,
+                    path.subgroups,
+                    true,
+                    None,
+                    false,
+                )
+                .unwrap();
                 let run = |features_grad| {
                     let accumulation = path.accumulation;
                     backward_impl(
@@ -462,7 +472,7 @@ fn check_finite(
     let mut last = None;
     for path in backward_paths() {
         let (out, state) =
-            forward_impl(&scene.view(), cam, &opts, path.subgroups, true, None).unwrap();
+            forward_impl(&scene.view(), cam, &opts, path.subgroups, true, None, false).unwrap();
         let depth = out.depth.as_ref().unwrap();
         assert!(
             all_finite(&out.features) && all_finite(&out.alpha) && all_finite(depth),
@@ -694,9 +704,11 @@ fn widened(g: &GaussianGradients<f32>) -> GaussianGradients<f64> {
 /// (the atomics add in another order); returns the number of bands.
 fn banded_matches_whole(scene: &OwnedGaussians, cam: &Camera, depth: bool, limit: u64) -> usize {
     let opts = options(scene.channels, depth);
-    let (whole, whole_state) = forward_impl(&scene.view(), cam, &opts, true, true, None).unwrap();
+    let (whole, whole_state) =
+        forward_impl(&scene.view(), cam, &opts, true, true, None, false).unwrap();
     assert_eq!(whole_state.bands(), 1);
-    let (banded, state) = forward_impl(&scene.view(), cam, &opts, true, true, Some(limit)).unwrap();
+    let (banded, state) =
+        forward_impl(&scene.view(), cam, &opts, true, true, Some(limit), false).unwrap();
     assert!(
         banded == whole,
         "banded images differ from the whole frame's"
@@ -814,5 +826,60 @@ fn large_frame_renders_on_both_executors() {
     for (name, g) in [("wgpu", &gpu_grads), ("cpu", &cpu_grads)] {
         let errors = gradient_errors(g, &expected);
         assert!(errors.iter().all(|&e| e < 1e-3), "{name}: {errors:?}");
+    }
+}
+
+/// The counting blend renders exactly what the normal one does, and its counters relate to
+/// the CPU executor's as designed: `row_evaluations` applies the CPU executor's rule (its
+/// binning's row marks, evaluated while the row still blends) to the wgpu walk, and the
+/// blending decisions are the contract's, so it and `contributions` equal the CPU executor's
+/// `evaluations` and `contributions` up to entries the two executors' tile tests list
+/// differently (a widened span barely reaching a tile) and f32 rounding. The wgpu blend decides
+/// per quad of four pixels, so the evaluations it makes are at most the row rule's without
+/// subgroups, and with subgroups (where a quad one row needs is evaluated by every row of the
+/// tile) at least as many as without.
+#[test]
+fn blend_counters_match_the_cpu_executor() {
+    for (width, height, scene) in [
+        (100, 75, random_scene(3_000, 3, 41)),
+        (128, 96, random_scene_sized(20_000, 3, 43, -5.5)),
+    ] {
+        let cam = camera(width, height);
+        let opts = options(3, true);
+        let (_, cpu_state) = super::cpu::forward(&scene.view(), &cam, &opts).unwrap();
+        let cpu = cpu_state.stats;
+        let mut quad_evaluations = Vec::new();
+        for subgroups in subgroup_choices() {
+            let view = scene.view();
+            let (plain, _) =
+                forward_impl(&view, &cam, &opts, subgroups, true, None, false).unwrap();
+            let (counted, state) =
+                forward_impl(&view, &cam, &opts, subgroups, true, None, true).unwrap();
+            assert_eq!(
+                plain, counted,
+                "subgroups {subgroups}: counting changed the images"
+            );
+            let gpu = state.counts.unwrap();
+            eprintln!("{width}x{height} subgroups {subgroups}: wgpu {gpu:?}, cpu {cpu:?}");
+            let near = |a: u64, b: u64| a.abs_diff(b) as f64 <= 1e-3 * b as f64;
+            assert!(cpu.contributions > 1_000, "{cpu:?}");
+            assert!(
+                near(gpu.row_evaluations, cpu.evaluations),
+                "{gpu:?} {cpu:?}"
+            );
+            assert!(
+                near(gpu.contributions, cpu.contributions),
+                "{gpu:?} {cpu:?}"
+            );
+            assert!(gpu.contributions <= gpu.quad_evaluations, "{gpu:?}");
+            if !subgroups {
+                assert!(gpu.quad_evaluations <= gpu.row_evaluations, "{gpu:?}");
+            }
+            quad_evaluations.push(gpu.quad_evaluations);
+        }
+        assert!(
+            quad_evaluations.windows(2).all(|w| w[0] <= w[1]),
+            "{quad_evaluations:?}"
+        );
     }
 }

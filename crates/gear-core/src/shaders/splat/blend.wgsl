@@ -3,7 +3,8 @@
 // pixels at once (two vec4 quads). Writes the image (features, alpha, and depth when
 // WITH_DEPTH) and, for the backward pass, each pixel's final transmittance and the end of the
 // list prefix it consumed. Specialised with: CHANNELS, WITH_DEPTH, TILE (must be 8),
-// TILE_GROUP, contract constants.
+// TILE_GROUP, contract constants. Its work counters (blend_counts_*.wgsl, included before)
+// are compiled in only for the counting variant.
 //
 // With subgroup operations (tile_share_subgroup.wgsl, TILE_GROUP = 1 so that a subgroup never
 // spans two tiles) one invocation loads each Gaussian and broadcasts it to the other rows,
@@ -43,12 +44,14 @@ fn new_quad(first: u32, row_len: u32, start: u32) -> Quad {
     return q;
 }
 
-// Blends list entry k (`e`, colour `own`) into the quad's pixels at x = xs, y = cy; returns
-// how many of them stopped.
+// Blends list entry k (`e`, colour `own`) into the quad's pixels at x = xs, y = cy (pixels
+// [first, first + 4) of a row of row_len); returns how many of them stopped.
 fn blend_quad(
     q: ptr<function, Quad>,
     xs: vec4<f32>,
     cy: f32,
+    first: u32,
+    row_len: u32,
     e: Entry,
     own: ptr<function, array<f32, CHANNELS>>,
     k: u32,
@@ -59,6 +62,7 @@ fn blend_quad(
     let hit = !(*q).stopped & v.passes;
     let stop = hit & next < vec4<f32>(MIN_TRANSMITTANCE);
     let blend = hit & !stop;
+    count_quad(first, row_len, blend);
     (*q).stopped = (*q).stopped | stop;
     let w = select(vec4<f32>(0.0), v.alpha * t, blend);
     for (var c = 0u; c < CHANNELS; c++) {
@@ -117,13 +121,15 @@ fn main(
         // A quad whose pixel centres the entry's ellipse misses, or whose pixels have all
         // stopped, would blend nothing: skip it, exponentials included.
         let span = row_span(entry, row.cy);
+        count_row(entry, span, tile, row, live);
         if tile_any(span_meets(span, row.xs) && !all(left.stopped)) {
-            live -= blend_quad(&left, row.xs, row.cy, entry, &own, k);
+            live -= blend_quad(&left, row.xs, row.cy, 0u, row.len, entry, &own, k);
         }
         if tile_any(span_meets(span, row.xs + 4.0) && !all(right.stopped)) {
-            live -= blend_quad(&right, row.xs + 4.0, row.cy, entry, &own, k);
+            live -= blend_quad(&right, row.xs + 4.0, row.cy, 4u, row.len, entry, &own, k);
         }
     }
     store_quad(&left, 0u, row.len, row.start);
     store_quad(&right, 4u, row.len, row.start);
+    flush_counts();
 }
