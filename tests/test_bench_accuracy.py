@@ -96,10 +96,12 @@ def test_csv_round_trip(tmp_path):
     from gear.bench.accuracy import write_csv
 
     runs = fake_runs()
+    runs[0].cpu_seconds = 12.345
     write_csv(runs, tmp_path / "a.csv")
     back = read_csv(tmp_path / "a.csv")
     assert [(r.scene, r.budget, r.variant, r.iterations, r.status) for r in back] == [
         (r.scene, r.budget, r.variant, r.iterations, r.status) for r in runs]
+    assert back[0].cpu_seconds == pytest.approx(12.35) and back[1].cpu_seconds is None
     for got, want in zip(back, runs, strict=True):
         assert got.timings == pytest.approx(want.timings, abs=0.01)  # the CSV keeps 2 decimals
         assert {k: v for k, v in got.metrics.items() if v is not None} == pytest.approx(
@@ -111,13 +113,14 @@ def test_table_lists_stage_times_in_pipeline_order():
     # order a run's dict (or the CSV) has them in, and keeps unknown steps after them.
     timings = {"outputs": 1.0, "stage3": 5.0, "stage2": 0.5, "stage1-end": 2.0,
                "stage1-start": 3.0, "extra": 0.25}
-    md = markdown_table([Run("fridge", "quick", iterations=300, timings=timings)], "m")
+    md = markdown_table([Run("fridge", "quick", iterations=300, timings=timings,
+                             cpu_seconds=9.5)], "m")
     header, _, row = [ln for ln in md.splitlines() if ln.startswith("|")]
     cells = [c.strip() for c in header.strip("|").split("|")]
-    assert cells[4:11] == ["stage 1 A (s)", "stage 1 B (s)", "stage 2 (s)", "stage 3 (s)",
-                           "outputs (s)", "extra (s)", "total (s)"]
-    values = [c.strip() for c in row.strip("|").split("|")][4:11]
-    assert values == ["3.000", "2.000", "0.500", "5.000", "1.000", "0.250", "11.750"]
+    assert cells[4:12] == ["stage 1 A (s)", "stage 1 B (s)", "stage 2 (s)", "stage 3 (s)",
+                           "outputs (s)", "extra (s)", "total (s)", "CPU (s)"]
+    values = [c.strip() for c in row.strip("|").split("|")][4:12]
+    assert values == ["3.000", "2.000", "0.500", "5.000", "1.000", "0.250", "11.750", "9.500"]
 
 
 def test_default_budget_ladder_spans_quick_to_fast():
@@ -149,6 +152,7 @@ def test_config_file_applies_to_every_budget_and_labels_the_runs(tmp_path):
     for r in back:
         assert set(r.timings) >= {"stage1-start", "stage1-end", "stage2", "stage3"}
         assert r.metrics["part_iou"] is not None
+        assert r.cpu_seconds is not None and r.cpu_seconds > 0
         saved = json.loads((out / "accuracy_runs" / "outputs" /
                             f"fridge-{r.budget}-{r.variant}" / "config.json").read_text())
         assert saved["max_gaussians_per_pixel"] == 1.5

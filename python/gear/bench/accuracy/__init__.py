@@ -164,9 +164,10 @@ def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: d
         config = config.replace(em_interval=scaled_em_interval(overrides["em_interval"], config))
     record = Run(scene, budget, variant, iterations)
     try:
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         # A re-run of the benchmark replaces that configuration's earlier run.
         result = train(scene_dir, out_dir, config, overwrite=True, quiet=True)
+        record.cpu_seconds = time.process_time() - cpu0
         record.timings = dict(result.timings) or {"total": time.perf_counter() - t0}
         metrics = evaluate(out_dir, scene_dir)
         # Per-joint rows and skip reasons stay with the run, as `gear eval` leaves them.

@@ -45,6 +45,9 @@ class Run:
     parts_found: int | None = None
     types_true: str = ""
     types_found: str = ""
+    # Process CPU time of training (every thread): on a shared machine wall times vary with the
+    # load, CPU times compare.
+    cpu_seconds: float | None = None
 
     @property
     def total_seconds(self) -> float:
@@ -54,6 +57,7 @@ class Run:
         out: dict[str, Any] = {
             "scene": self.scene, "budget": self.budget, "variant": self.variant,
             "iterations": self.iterations, "total_s": round(self.total_seconds, 2),
+            "cpu_s": None if self.cpu_seconds is None else round(self.cpu_seconds, 2),
         }
         out.update({f"time_{k}_s": round(v, 2) for k, v in sorted(self.timings.items())})
         out.update({key: self.metrics.get(key) for key, _, _ in METRICS})
@@ -93,7 +97,7 @@ def read_csv(path: Path) -> list[Run]:
             {key: number(row.get(key)) for key, _, _ in METRICS},
             int(row["type_mismatches"] or 0), row["status"],
             _integer(row.get("parts_true")), _integer(row.get("parts_found")),
-            row.get("types_true") or "", row.get("types_found") or "",
+            row.get("types_true") or "", row.get("types_found") or "", number(row.get("cpu_s")),
         ))
     return records
 
@@ -123,13 +127,14 @@ def markdown_table(records: Sequence[Run], machine: str) -> str:
     timed = {k for r in records for k in r.timings}
     stages = [s for s in STAGES if s in timed] + sorted(timed - set(STAGES))
     header = ["scene", "budget", "variant", "iters",
-              *[f"{STAGES.get(s, s)} (s)" for s in stages], "total (s)",
+              *[f"{STAGES.get(s, s)} (s)" for s in stages], "total (s)", "CPU (s)",
               *[label for _, label, _ in METRICS], "type mism."]
     lines = [f"Machine: {machine}", "", "| " + " | ".join(header) + " |",
              "|" + "---|" * len(header)]
     for r in records:
         cells = [r.scene, r.budget, r.variant, str(r.iterations)]
-        cells += [_cell(r.timings.get(s)) for s in stages] + [_cell(r.total_seconds)]
+        cells += [_cell(r.timings.get(s)) for s in stages]
+        cells += [_cell(r.total_seconds), _cell(r.cpu_seconds)]
         if r.status == "ok":
             cells += [_cell(r.metrics.get(key)) for key, _, _ in METRICS]
         else:
