@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 
@@ -95,14 +96,89 @@ def test_csv_round_trip(tmp_path):
     from gear.bench.accuracy import write_csv
 
     runs = fake_runs()
+    runs[0].cpu_seconds = 12.345
     write_csv(runs, tmp_path / "a.csv")
     back = read_csv(tmp_path / "a.csv")
     assert [(r.scene, r.budget, r.variant, r.iterations, r.status) for r in back] == [
         (r.scene, r.budget, r.variant, r.iterations, r.status) for r in runs]
+    assert back[0].cpu_seconds == pytest.approx(12.35) and back[1].cpu_seconds is None
     for got, want in zip(back, runs, strict=True):
         assert got.timings == pytest.approx(want.timings, abs=0.01)  # the CSV keeps 2 decimals
         assert {k: v for k, v in got.metrics.items() if v is not None} == pytest.approx(
             {k: v for k, v in want.metrics.items() if v is not None})
+
+
+def test_table_lists_stage_times_in_pipeline_order():
+    # Training reports its steps by key; the table shows them in the order they run, whatever
+    # order a run's dict (or the CSV) has them in, and keeps unknown steps after them.
+    timings = {"outputs": 1.0, "stage3": 5.0, "stage2": 0.5, "stage1-end": 2.0,
+               "stage1-start": 3.0, "extra": 0.25}
+    md = markdown_table([Run("fridge", "quick", iterations=300, timings=timings,
+                             cpu_seconds=9.5)], "m")
+    header, _, row = [ln for ln in md.splitlines() if ln.startswith("|")]
+    cells = [c.strip() for c in header.strip("|").split("|")]
+    assert cells[4:12] == ["stage 1 A (s)", "stage 1 B (s)", "stage 2 (s)", "stage 3 (s)",
+                           "outputs (s)", "extra (s)", "total (s)", "CPU (s)"]
+    values = [c.strip() for c in row.strip("|").split("|")][4:12]
+    assert values == ["3.000", "2.000", "0.500", "5.000", "1.000", "0.250", "11.750", "9.500"]
+
+
+def test_default_budget_ladder_spans_quick_to_fast():
+    from gear.bench.accuracy import _resolve_defaults, add_arguments
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args([])
+    _resolve_defaults(args)
+    iterations = [budget_config(b)[1] for b in args.profiles.split(",")]
+    assert iterations == [300, 1000, 3000, 10_000]
+
+
+def test_config_file_applies_to_every_budget_and_labels_the_runs(tmp_path):
+    # A real (tiny) benchmark: the built-in fridge at 32², two 20-iteration budgets, with a
+    # Gaussian cap from --config. The cap must reach training (each run's saved config) and
+    # name the runs' variant, so capped and uncapped runs can share one table.
+    cap = tmp_path / "cap.json"
+    cap.write_text(json.dumps({"max_gaussians_per_pixel": 1.5}))
+    out = tmp_path / "bench"
+    code = main(["bench", "accuracy", "--scenes", "fridge", "--profiles", "quick:20,quick:40",
+                 "--res", "32", "--views", "3", "--test-views", "1", "--config", str(cap),
+                 "--out", str(out)])
+    assert code == 0
+    back = read_csv(out / "accuracy.csv")
+    assert [(r.budget, r.variant, r.status) for r in back] == [
+        ("quick:20", "max_gaussians_per_pixel=1.5", "ok"),
+        ("quick:40", "max_gaussians_per_pixel=1.5", "ok")]
+    for r in back:
+        assert set(r.timings) >= {"stage1-start", "stage1-end", "stage2", "stage3"}
+        assert r.metrics["part_iou"] is not None
+        assert r.cpu_seconds is not None and r.cpu_seconds > 0
+        saved = json.loads((out / "accuracy_runs" / "outputs" /
+                            f"fridge-{r.budget}-{r.variant}" / "config.json").read_text())
+        assert saved["max_gaussians_per_pixel"] == 1.5
+        assert saved["stage3_iterations"] == r.iterations
+    assert "| stage 1 A (s) | stage 1 B (s) | stage 2 (s) | stage 3 (s) |" in (
+        out / "accuracy.md").read_text()
+
+
+def test_bad_config_file_fails_before_training(tmp_path, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"max_gaussians_per_pixel": -1}))
+    code = main(["bench", "accuracy", "--scenes", "fridge", "--profiles", "quick",
+                 "--config", str(bad), "--out", str(tmp_path / "bench")])
+    assert code != 0
+    assert "max_gaussians_per_pixel" in capsys.readouterr().err
+    assert not (tmp_path / "bench").exists()
+
+
+def test_run_labels_name_config_fields():
+    from gear.bench.accuracy import run_label
+
+    assert run_label("default", {}) == "default"
+    assert run_label("em", {}) == "em"
+    assert run_label("default", {"sh_degree": 1, "max_gaussians_per_pixel": 3.0}) == (
+        "max_gaussians_per_pixel=3.0,sh_degree=1")
+    assert run_label("joint", {"sh_degree": 1}) == "joint;sh_degree=1"
 
 
 def test_markdown_table_without_runs_has_header_only():

@@ -7,7 +7,10 @@ OUT/accuracy.png (each metric against total training time, one line per scene).
 
 Budgets: a profile name (quick, fast, full), an iteration count N, meaning the full profile's
 schedule rescaled to N stage-1 + N stage-3 iterations the way `fast` rescales it to 10k + 10k,
-or PROFILE:N, that profile's schedule rescaled the same way (e.g. quick:600).
+or PROFILE:N, that profile's schedule rescaled the same way (e.g. quick:600). The default ladder,
+quick, 1000, 3000 and fast (300 to 10k iterations per stage), spans what a user can afford on a
+CPU. `--config` applies config fields on top of every budget (e.g. a Gaussian cap), labelling
+the runs with them so that runs with and without share one table.
 Scenes: built-in object names (generated once into the work folder with `gear synth` settings
 given here) or paths to existing scene folders. `--suite real` runs the real-asset suite
 instead (PartNet-Mobility objects under real-capture conditions, `gear.bench.accuracy.real`),
@@ -51,8 +54,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated built-in object names or scene folders")
     parser.add_argument("--profiles", "--profile", default=None,
                         help="comma-separated budgets: quick|fast|full, an iteration count N "
-                        "(full rescaled) or PROFILE:N (default quick,2000,fast; quick with "
-                        "--suite)")
+                        "(full rescaled) or PROFILE:N (default quick,1000,3000,fast; quick "
+                        "with --suite)")
     parser.add_argument("--suite", choices=["real"], default=None,
                         help="real: the PartNet-Mobility objects rendered as a real capture "
                         "(+y up, other cameras per state, textures, highlights) instead of "
@@ -67,6 +70,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="instead of budgets: EM vs joint optimisation, EM interval "
                         f"{'/'.join(map(str, EM_INTERVALS))} (of a 30k-iteration stage 3, "
                         "scaled to the budget's), clean vs flawed masks, all at the first budget")
+    parser.add_argument("--config", type=Path, default=None,
+                        help="JSON file of config fields applied on top of every budget, e.g. "
+                        '{"max_gaussians_per_pixel": 1.5}; the runs\' variant names them')
     parser.add_argument("--res", type=int, default=128, help="generated scenes' resolution")
     parser.add_argument("--views", type=int, default=None,
                         help="generated training views/state (default 48; 32 with --suite)")
@@ -146,20 +152,22 @@ def _scene_dir(name: str, effects: tuple[str, ...], work: Path, args: argparse.N
 
 
 def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: dict[str, Any],
-            out_dir: Path, seed: int) -> Run:
-    """Train and score one configuration; failures are recorded, not raised."""
+            out_dir: Path, seed: int, fixed: dict[str, Any] | None = None) -> Run:
+    """Train and score one configuration; failures are recorded, not raised. `fixed` fields
+    (--config) apply to the budget as given, the variant's `overrides` after them."""
     from gear.evaluate import evaluate
     from gear.train import train
 
     config, iterations = budget_config(budget, seed)
-    config = config.replace(**overrides)
+    config = config.replace(**(fixed or {})).replace(**overrides)
     if "em_interval" in overrides:
         config = config.replace(em_interval=scaled_em_interval(overrides["em_interval"], config))
     record = Run(scene, budget, variant, iterations)
     try:
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         # A re-run of the benchmark replaces that configuration's earlier run.
         result = train(scene_dir, out_dir, config, overwrite=True, quiet=True)
+        record.cpu_seconds = time.process_time() - cpu0
         record.timings = dict(result.timings) or {"total": time.perf_counter() - t0}
         metrics = evaluate(out_dir, scene_dir)
         # Per-joint rows and skip reasons stay with the run, as `gear eval` leaves them.
@@ -186,11 +194,24 @@ def record_structure(record: Run, out_dir: Path, scene_dir: Path) -> None:
         record.parts_found, record.types_found = 1 + len(types), type_counts(types)
 
 
+def config_label(fixed: dict[str, Any]) -> str:
+    """The variant name of --config fields: "field=value,..." ("" for none)."""
+    return ",".join(f"{name}={value}" for name, value in sorted(fixed.items()))
+
+
+def run_label(variant: str, fixed: dict[str, Any]) -> str:
+    """A run's variant as recorded: the ablation variant and/or the --config fields."""
+    label = config_label(fixed)
+    if not label:
+        return variant
+    return label if variant == "default" else f"{variant};{label}"
+
+
 def _resolve_defaults(args: argparse.Namespace) -> None:
     """Defaults that depend on --suite."""
     suite = args.suite is not None
     if args.profiles is None:
-        args.profiles = "quick" if suite else "quick,2000,fast"
+        args.profiles = "quick" if suite else "quick,1000,3000,fast"
     if args.views is None:
         args.views = 32 if suite else 48
     if args.out is None:
@@ -233,10 +254,14 @@ def _named_scenes(args: argparse.Namespace, work: Path) -> list[tuple[str, Any]]
 
 
 def run(args: argparse.Namespace) -> int:
+    from gear.config import load_overrides
+
     _resolve_defaults(args)
     budgets = [b for b in args.profiles.split(",") if b]
+    # Bad budget tokens and config files fail before any training starts.
+    fixed = load_overrides(args.config) if args.config else {}
     for b in budgets:
-        budget_config(b)  # reject a bad token before any training starts
+        budget_config(b)[0].replace(**fixed)
     if args.ablation:
         budgets = budgets[:1]
     work = args.work or args.out / "accuracy_runs"
@@ -250,7 +275,8 @@ def run(args: argparse.Namespace) -> int:
     records = [r for r in records if (r.scene, r.budget, r.variant) in finished]
     for name, scene_dir_of in scenes:
         for budget in budgets:
-            for variant, overrides, effects in variants(args.ablation):
+            for base_variant, overrides, effects in variants(args.ablation):
+                variant = run_label(base_variant, fixed)
                 print(f"[{name} / {budget} / {variant}] ", end="", flush=True)
                 if (name, budget, variant) in finished:
                     print("already in the table", flush=True)
@@ -262,7 +288,7 @@ def run(args: argparse.Namespace) -> int:
                 else:
                     out_dir = work / "outputs" / f"{name}-{budget}-{variant}"
                     record = run_one(name, scene_dir, budget, variant, overrides, out_dir,
-                                     args.seed)
+                                     args.seed, fixed)
                 records.append(record)
                 print(f"{record.status}, {record.total_seconds:.1f} s", flush=True)
                 # Table and CSV after every run, so a long benchmark can be read as it goes.

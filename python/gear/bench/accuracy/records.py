@@ -22,6 +22,10 @@ METRICS = [
     ("part_iou", "Part IoU", False),
     ("psnr", "PSNR (dB)", False),
 ]
+# The pipeline's timed steps in the order they run (training's `timings` keys) and their column
+# labels: stage 1 of the start (A) and end (B) state, stage 2, stage 3, writing the outputs.
+STAGES = {"stage1-start": "stage 1 A", "stage1-end": "stage 1 B", "stage2": "stage 2",
+          "stage3": "stage 3", "outputs": "outputs"}
 
 
 @dataclass
@@ -41,6 +45,9 @@ class Run:
     parts_found: int | None = None
     types_true: str = ""
     types_found: str = ""
+    # Process CPU time of training (every thread): on a shared machine wall times vary with the
+    # load, CPU times compare.
+    cpu_seconds: float | None = None
 
     @property
     def total_seconds(self) -> float:
@@ -50,6 +57,7 @@ class Run:
         out: dict[str, Any] = {
             "scene": self.scene, "budget": self.budget, "variant": self.variant,
             "iterations": self.iterations, "total_s": round(self.total_seconds, 2),
+            "cpu_s": None if self.cpu_seconds is None else round(self.cpu_seconds, 2),
         }
         out.update({f"time_{k}_s": round(v, 2) for k, v in sorted(self.timings.items())})
         out.update({key: self.metrics.get(key) for key, _, _ in METRICS})
@@ -89,7 +97,7 @@ def read_csv(path: Path) -> list[Run]:
             {key: number(row.get(key)) for key, _, _ in METRICS},
             int(row["type_mismatches"] or 0), row["status"],
             _integer(row.get("parts_true")), _integer(row.get("parts_found")),
-            row.get("types_true") or "", row.get("types_found") or "",
+            row.get("types_true") or "", row.get("types_found") or "", number(row.get("cpu_s")),
         ))
     return records
 
@@ -114,15 +122,19 @@ def _cell(value: float | None) -> str:
 
 
 def markdown_table(records: Sequence[Run], machine: str) -> str:
-    """One row per run: budget, stage times, metrics; failures shown as such."""
-    stages = sorted({k for r in records for k in r.timings})
-    header = ["scene", "budget", "variant", "iters", *[f"{s} (s)" for s in stages], "total (s)",
+    """One row per run: budget, stage times (in the order the stages run), metrics; failures
+    shown as such."""
+    timed = {k for r in records for k in r.timings}
+    stages = [s for s in STAGES if s in timed] + sorted(timed - set(STAGES))
+    header = ["scene", "budget", "variant", "iters",
+              *[f"{STAGES.get(s, s)} (s)" for s in stages], "total (s)", "CPU (s)",
               *[label for _, label, _ in METRICS], "type mism."]
     lines = [f"Machine: {machine}", "", "| " + " | ".join(header) + " |",
              "|" + "---|" * len(header)]
     for r in records:
         cells = [r.scene, r.budget, r.variant, str(r.iterations)]
-        cells += [_cell(r.timings.get(s)) for s in stages] + [_cell(r.total_seconds)]
+        cells += [_cell(r.timings.get(s)) for s in stages]
+        cells += [_cell(r.total_seconds), _cell(r.cpu_seconds)]
         if r.status == "ok":
             cells += [_cell(r.metrics.get(key)) for key, _, _ in METRICS]
         else:
@@ -268,14 +280,15 @@ def plot_bars(records: Sequence[Run], path: Path, along: Callable[[Run], str],
 def write_results(records: Sequence[Run], out: Path, machine: str,
                   suite: bool = False) -> dict[str, Path]:
     """accuracy.csv, accuracy.md and accuracy.png in `out`; returns their paths. A suite's
-    table has one row per object and its plot one bar group per object."""
+    table has one row per object and its plot one bar group per object; variants of one budget
+    (an ablation) get bars, budgets a line per scene (and variant) against time."""
     out.mkdir(parents=True, exist_ok=True)
     paths = {"csv": out / "accuracy.csv", "md": out / "accuracy.md", "png": out / "accuracy.png"}
     write_csv(records, paths["csv"])
     paths["md"].write_text((suite_table if suite else markdown_table)(records, machine))
     if suite:
         plot_bars(records, paths["png"], along=lambda r: r.scene, bars=lambda r: r.budget)
-    elif any(r.variant != "default" for r in records):
+    elif len({r.budget for r in records}) == 1 and any(r.variant != "default" for r in records):
         plot_ablation(records, paths["png"])
     else:
         plot(records, paths["png"])
