@@ -11,7 +11,9 @@
 use rayon::prelude::*;
 
 use super::blend::{PixelState, Row, Scene};
-use super::lanes::{array, evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
+use super::lanes::{
+    array, channels, evaluate, mask, masked, select, with_avx2, with_channels, Lanes, Mask, LANES,
+};
 use super::TILE;
 use crate::splat::constants::MAX_ALPHA;
 use crate::splat::types::OutputGradients;
@@ -94,7 +96,10 @@ fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &Records
             continue;
         }
         let rows = Row::of_tile(tx, band, scene.width, scene.height);
-        replay_tile(scene, replay, range, &rows, tx, &mut buffers, records);
+        with_channels!(
+            scene.channels,
+            replay_tile(scene, replay, range, &rows, tx, &mut buffers, records)
+        );
     }
 }
 
@@ -186,9 +191,10 @@ fn load_row(
 
 /// Replays a tile's list (entries `range`) back to front for all its rows at once (from the
 /// longest consumed prefix; an entry visits only the rows its ellipse spans and that consumed
-/// it), adding each row's contributions to the entry's record, rows in increasing order.
+/// it), adding each row's contributions to the entry's record, rows in increasing order. `C`
+/// is the channel count if it is a compile-time constant ([`with_channels!`]).
 #[inline(always)]
-fn replay_tile(
+fn replay_tile<const C: usize>(
     scene: &Scene,
     replay: &Replay,
     range: std::ops::Range<usize>,
@@ -198,7 +204,7 @@ fn replay_tile(
     records: &Records,
 ) {
     let bins = scene.bins;
-    let channels = scene.channels;
+    let channels = channels::<C>(scene.channels);
     let stride = replay.stride(channels);
     let start = range.start as u32;
     let mut state: [RowState; TILE as usize] = array(|r| {
