@@ -222,15 +222,19 @@ fn replay_tile<const C: usize>(
     let ends: [u32; TILE as usize] = array(|r| state[r].last);
     let last = ends.iter().copied().max().unwrap();
     let zero = [0.0f32; LANES];
+    // Rows by decreasing prefix end: those whose consumed prefix holds entry k (end > k) are
+    // a leading run of this order that grows as k falls.
+    let mut by_end: [usize; TILE as usize] = array(|r| r);
+    by_end.sort_unstable_by_key(|&r| std::cmp::Reverse(ends[r]));
+    let (mut held, mut holding) = (0, 0u32);
     for k in (start..last).rev() {
         let s = &bins.entries[k as usize];
         let f = &bins.entry_features[k as usize * channels..(k as usize + 1) * channels];
         let mut touched = false;
-        // Rows whose consumed prefix holds entry k.
-        let holding = ends
-            .iter()
-            .enumerate()
-            .fold(0, |m, (r, &end)| m | (u32::from(k < end) << r));
+        while held < by_end.len() && ends[by_end[held]] > k {
+            holding |= 1 << by_end[held];
+            held += 1;
+        }
         let mut visit = s.rows & holding;
         while visit != 0 {
             let r = visit.trailing_zeros() as usize;
