@@ -272,54 +272,6 @@ fn depth_order(mut keys: Vec<u64>) -> Vec<u64> {
     keys
 }
 
-/// The lists of the tiles `tiles` (their slices of the list arrays).
-struct TileLists<'a> {
-    tiles: std::ops::Range<usize>,
-    entries: &'a mut [Entry],
-    features: &'a mut [f32],
-    pairs: &'a mut [u32],
-}
-
-/// What the scatter into the tile lists reads.
-struct ScatterSources<'a> {
-    gaussians: &'a Gaussians<'a>,
-    splats: &'a [Entry],
-    pairs: &'a [[u32; 2]],
-    pair_offsets: &'a [u32],
-    tile_offsets: &'a [u32],
-}
-
-/// Writes the pairs of the tiles of `out`, taking the Gaussians in depth order (`by_depth`),
-/// so that every list is in depth order.
-fn scatter(src: &ScatterSources, by_depth: &[u64], out: TileLists) {
-    let channels = src.gaussians.channels;
-    let base = src.tile_offsets[out.tiles.start];
-    let mut cursor: Vec<u32> = src.tile_offsets[out.tiles.clone()]
-        .iter()
-        .map(|&o| o - base)
-        .collect();
-    let (first, end) = (out.tiles.start as u32, out.tiles.end as u32);
-    for &key in by_depth {
-        let g = key as u32 as usize;
-        let pairs = src.pair_offsets[g] as usize..src.pair_offsets[g + 1] as usize;
-        for (pair, &[t, rows]) in pairs.clone().zip(&src.pairs[pairs]) {
-            if t < first || t >= end {
-                continue;
-            }
-            let slot = &mut cursor[(t - first) as usize];
-            let e = *slot as usize;
-            *slot += 1;
-            out.entries[e] = Entry {
-                rows,
-                ..src.splats[g]
-            };
-            out.pairs[e] = pair as u32;
-            out.features[e * channels..(e + 1) * channels]
-                .copy_from_slice(&src.gaussians.features[g * channels..(g + 1) * channels]);
-        }
-    }
-}
-
 /// Projects and bins `gaussians`; call inside the executor's thread pool.
 ///
 /// Everything per Gaussian runs in index order (parallel, streaming through memory); only the
@@ -380,42 +332,22 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     for t in 0..tile_count {
         tile_offsets[t + 1] += tile_offsets[t];
     }
+    let mut cursor = tile_offsets[..tile_count].to_vec();
     let mut entries = vec![Entry::default(); pairs.len()];
     let mut entry_features = vec![0.0f32; pairs.len() * channels];
     let mut entry_pairs = vec![0u32; pairs.len()];
-    // The lists of each run of whole tiles are filled by one thread; the runs split the work,
-    // not the result (every list comes out the same for any number of runs).
-    let runs = rayon::current_num_threads().clamp(1, tile_count.max(1));
-    let mut lists = Vec::with_capacity(runs);
-    let (mut entries_rest, mut features_rest, mut pairs_rest) = (
-        &mut entries[..],
-        &mut entry_features[..],
-        &mut entry_pairs[..],
-    );
-    for r in 0..runs {
-        let tiles = tile_count * r / runs..tile_count * (r + 1) / runs;
-        let len = (tile_offsets[tiles.end] - tile_offsets[tiles.start]) as usize;
-        let (e, er) = std::mem::take(&mut entries_rest).split_at_mut(len);
-        let (f, fr) = std::mem::take(&mut features_rest).split_at_mut(len * channels);
-        let (p, pr) = std::mem::take(&mut pairs_rest).split_at_mut(len);
-        (entries_rest, features_rest, pairs_rest) = (er, fr, pr);
-        lists.push(TileLists {
-            tiles,
-            entries: e,
-            features: f,
-            pairs: p,
-        });
+    for &key in &by_depth {
+        let g = key as u32 as usize;
+        let features = &gaussians.features[g * channels..(g + 1) * channels];
+        for pair in pair_offsets[g] as usize..pair_offsets[g + 1] as usize {
+            let [t, rows] = pairs[pair];
+            let e = cursor[t as usize] as usize;
+            cursor[t as usize] += 1;
+            entries[e] = Entry { rows, ..splats[g] };
+            entry_pairs[e] = pair as u32;
+            entry_features[e * channels..(e + 1) * channels].copy_from_slice(features);
+        }
     }
-    let sources = ScatterSources {
-        gaussians,
-        splats: &splats,
-        pairs: &pairs,
-        pair_offsets: &pair_offsets,
-        tile_offsets: &tile_offsets,
-    };
-    lists
-        .into_par_iter()
-        .for_each(|out| scatter(&sources, &by_depth, out));
     Bins {
         tiles_x: tiles[0],
         tiles_y: tiles[1],
