@@ -11,7 +11,7 @@
 use rayon::prelude::*;
 
 use super::lanes::LANES as BLOCK;
-use super::lanes::{array, mask, with_avx2, Lanes, LANES};
+use super::lanes::{array, mask, select, with_avx2, Lanes, LANES};
 use super::project::{Prepared, Screen, View};
 use super::TILE;
 use crate::splat::constants;
@@ -98,16 +98,17 @@ impl Footprint {
         let mut last = [0.0f32; LANES];
         let rows_inside = height.saturating_sub(ty * TILE);
         for r in 0..LANES {
-            let dy = (ty * TILE + r as u32) as f32 + 0.5 - self.v;
+            // Through i32: the same exact value, and a vector conversion (u32 has none).
+            let dy = (ty * TILE + r as u32) as i32 as f32 + 0.5 - self.v;
             let room = self.reach - dy * dy;
             let half = (room.max(0.0) * self.span).sqrt() + SPAN_SLACK;
             let centre = self.u + self.slope * dy;
             let lo = (centre - half - 0.5).ceil().max(0.0);
             let hi = (centre + half - 0.5).floor().min(width as f32 - 1.0);
             // NaN room fails the compare: no columns.
-            let meets = room >= 0.0 && (r as u32) < rows_inside;
-            first[r] = if meets { lo } else { f32::INFINITY };
-            last[r] = if meets { hi } else { -1.0 };
+            let meets = mask(room >= 0.0) & mask((r as u32) < rows_inside);
+            first[r] = select(meets, lo, f32::INFINITY);
+            last[r] = select(meets, hi, -1.0);
         }
         (first, last)
     }

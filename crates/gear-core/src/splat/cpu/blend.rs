@@ -9,7 +9,9 @@
 use rayon::prelude::*;
 
 use super::bins::Bins;
-use super::lanes::{array, evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
+use super::lanes::{
+    array, channels, evaluate, mask, masked, select, with_avx2, with_channels, Lanes, Mask, LANES,
+};
 use super::TILE;
 use crate::splat::constants::MIN_TRANSMITTANCE;
 
@@ -134,14 +136,12 @@ fn blend_band_body(scene: &Scene, band: u32, mut out: BandImages) -> BlendCounts
     for tx in 0..bins.tiles_x {
         let tile = (band * bins.tiles_x + tx) as usize;
         let rows = Row::of_tile(tx, band, scene.width, scene.height);
-        counts = counts.add(blend_tile(
-            scene,
-            bins.range(tile),
-            &rows,
-            &mut acc,
-            tx,
-            &mut out,
-        ));
+        let range = bins.range(tile);
+        let tile_counts = with_channels!(
+            scene.channels,
+            blend_tile(scene, range, &rows, &mut acc, tx, &mut out)
+        );
+        counts = counts.add(tile_counts);
     }
     counts
 }
@@ -161,9 +161,9 @@ struct RowState {
 /// Blends one tile's list (entries `range`) front to back into its rows and stores their
 /// pixels. The list is walked once for all rows; an entry visits only the rows its ellipse
 /// spans that are still blending (a bit mask), so no row pays a branch for an entry that
-/// misses it.
+/// misses it. `C` is the channel count if it is a compile-time constant ([`with_channels!`]).
 #[inline(always)]
-fn blend_tile(
+fn blend_tile<const C: usize>(
     scene: &Scene,
     range: std::ops::Range<usize>,
     rows: &[Row; TILE as usize],
@@ -171,7 +171,7 @@ fn blend_tile(
     tx: u32,
     out: &mut BandImages,
 ) -> BlendCounts {
-    let channels = scene.channels;
+    let channels = channels::<C>(scene.channels);
     let start = range.start as u32;
     let entries = &scene.bins.entries[range.clone()];
     let features = &scene.bins.entry_features[range.start * channels..range.end * channels];

@@ -11,7 +11,9 @@
 use rayon::prelude::*;
 
 use super::blend::{PixelState, Row, Scene};
-use super::lanes::{array, evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
+use super::lanes::{
+    array, channels, evaluate, mask, masked, select, with_avx2, with_channels, Lanes, Mask, LANES,
+};
 use super::TILE;
 use crate::splat::constants::MAX_ALPHA;
 use crate::splat::types::OutputGradients;
@@ -94,7 +96,10 @@ fn replay_band_body(scene: &Scene, replay: &Replay, band: u32, records: &Records
             continue;
         }
         let rows = Row::of_tile(tx, band, scene.width, scene.height);
-        replay_tile(scene, replay, range, &rows, tx, &mut buffers, records);
+        with_channels!(
+            scene.channels,
+            replay_tile(scene, replay, range, &rows, tx, &mut buffers, records)
+        );
     }
 }
 
@@ -186,9 +191,10 @@ fn load_row(
 
 /// Replays a tile's list (entries `range`) back to front for all its rows at once (from the
 /// longest consumed prefix; an entry visits only the rows its ellipse spans and that consumed
-/// it), adding each row's contributions to the entry's record, rows in increasing order.
+/// it), adding each row's contributions to the entry's record, rows in increasing order. `C`
+/// is the channel count if it is a compile-time constant ([`with_channels!`]).
 #[inline(always)]
-fn replay_tile(
+fn replay_tile<const C: usize>(
     scene: &Scene,
     replay: &Replay,
     range: std::ops::Range<usize>,
@@ -198,7 +204,7 @@ fn replay_tile(
     records: &Records,
 ) {
     let bins = scene.bins;
-    let channels = scene.channels;
+    let channels = channels::<C>(scene.channels);
     let stride = replay.stride(channels);
     let start = range.start as u32;
     let mut state: [RowState; TILE as usize] = array(|r| {
@@ -216,15 +222,19 @@ fn replay_tile(
     let ends: [u32; TILE as usize] = array(|r| state[r].last);
     let last = ends.iter().copied().max().unwrap();
     let zero = [0.0f32; LANES];
+    // Rows by decreasing prefix end: those whose consumed prefix holds entry k (end > k) are
+    // a leading run of this order that grows as k falls.
+    let mut by_end: [usize; TILE as usize] = array(|r| r);
+    by_end.sort_unstable_by_key(|&r| std::cmp::Reverse(ends[r]));
+    let (mut held, mut holding) = (0, 0u32);
     for k in (start..last).rev() {
         let s = &bins.entries[k as usize];
         let f = &bins.entry_features[k as usize * channels..(k as usize + 1) * channels];
         let mut touched = false;
-        // Rows whose consumed prefix holds entry k.
-        let holding = ends
-            .iter()
-            .enumerate()
-            .fold(0, |m, (r, &end)| m | (u32::from(k < end) << r));
+        while held < by_end.len() && ends[by_end[held]] > k {
+            holding |= 1 << by_end[held];
+            held += 1;
+        }
         let mut visit = s.rows & holding;
         while visit != 0 {
             let r = visit.trailing_zeros() as usize;

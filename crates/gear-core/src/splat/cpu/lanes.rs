@@ -33,6 +33,35 @@ macro_rules! with_avx2 {
 }
 pub(super) use with_avx2;
 
+/// Calls `$f::<C>(args)` with the feature channel count `$channels` as a compile-time constant
+/// C for the common counts, else `$f::<0>(args)` (the count read at run time, see
+/// [`channels`]): with a constant count the per-channel loops unroll into straight-line code.
+macro_rules! with_channels {
+    ($channels:expr, $f:ident($($arg:expr),* $(,)?)) => {
+        match $channels {
+            1 => $f::<1>($($arg),*),
+            3 => $f::<3>($($arg),*),
+            4 => $f::<4>($($arg),*),
+            8 => $f::<8>($($arg),*),
+            16 => $f::<16>($($arg),*),
+            _ => $f::<0>($($arg),*),
+        }
+    };
+}
+pub(super) use with_channels;
+
+/// The channel count of a function specialised by [`with_channels!`]: `C`, or `runtime` for
+/// the generic instance C = 0.
+#[inline(always)]
+pub(super) fn channels<const C: usize>(runtime: usize) -> usize {
+    debug_assert!(C == 0 || C == runtime);
+    if C == 0 {
+        runtime
+    } else {
+        C
+    }
+}
+
 pub(super) const LANES: usize = 8;
 pub(super) type Lanes = [f32; LANES];
 /// Per-lane conditions as all-ones-or-zero u32s, applied with bitwise operations: bool arrays

@@ -27,7 +27,7 @@ use rayon::ThreadPool;
 use self::bins::{bin, Bins};
 use self::blend::{blend, PixelState, Scene};
 use self::blend_backward::{blend_backward, Replay, GEOMETRY};
-use self::lanes::{array, with_avx2, LANES as BLOCK};
+use self::lanes::{array, channels, with_avx2, with_channels, LANES as BLOCK};
 use self::project::{project_backward, View};
 use self::wide::F8;
 use crate::error::Result;
@@ -230,12 +230,30 @@ fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGra
 with_avx2!(
     /// [`reduce`] of Gaussians `first..` into `out`.
     fn reduce_chunk(bins: &Bins, records: &[f32], view: &View, first: usize, out: GradientChunk) -> () =
-        reduce_chunk_body
+        reduce_chunk_any
 );
 
+/// [`reduce_chunk_body`] specialised for the channel count of the feature gradients (0
+/// without them).
 #[inline(always)]
-fn reduce_chunk_body(bins: &Bins, records: &[f32], view: &View, first: usize, out: GradientChunk) {
-    let channels = out.channels;
+fn reduce_chunk_any(bins: &Bins, records: &[f32], view: &View, first: usize, out: GradientChunk) {
+    with_channels!(
+        out.channels,
+        reduce_chunk_body(bins, records, view, first, out)
+    )
+}
+
+/// [`reduce_chunk`] with `C` the channel count if it is a compile-time constant
+/// ([`with_channels!`]).
+#[inline(always)]
+fn reduce_chunk_body<const C: usize>(
+    bins: &Bins,
+    records: &[f32],
+    view: &View,
+    first: usize,
+    out: GradientChunk,
+) {
+    let channels = channels::<C>(out.channels);
     let stride = GEOMETRY + channels;
     for (k, logits) in out.logits.chunks_mut(BLOCK).enumerate() {
         let first = first + k * BLOCK;
@@ -244,19 +262,18 @@ fn reduce_chunk_body(bins: &Bins, records: &[f32], view: &View, first: usize, ou
         for (i, g) in (first..first + logits.len()).enumerate() {
             let pairs = bins.pairs_of(g);
             any |= !pairs.is_empty();
-            // A Gaussian's records are contiguous, in tile order.
-            let mine = &records[pairs.start * stride..pairs.end * stride];
-            for record in mine.chunks_exact(stride) {
-                for (sum, &v) in screen.iter_mut().zip(record) {
+            // A Gaussian's records are contiguous, in tile order: one pass sums every value.
+            let row = k * BLOCK + i;
+            let features = &mut out.features[row * channels..(row + 1) * channels];
+            features.fill(0.0);
+            for record in records[pairs.start * stride..pairs.end * stride].chunks_exact(stride) {
+                let (geometry, values) = record.split_at(GEOMETRY);
+                for (sum, &v) in screen.iter_mut().zip(geometry) {
                     sum.0[i] += v;
                 }
-            }
-            let row = k * BLOCK + i;
-            for c in 0..channels {
-                out.features[row * channels + c] = mine
-                    .chunks_exact(stride)
-                    .map(|r| r[GEOMETRY + c])
-                    .fold(0.0, |s, v| s + v);
+                for (sum, &v) in features.iter_mut().zip(values) {
+                    *sum += v;
+                }
             }
         }
         if !any {
