@@ -191,13 +191,17 @@ def test_budget_rescales_like_fast():
     fast, n = budget_config("fast")
     assert n == 10_000
     scaled, n = budget_config("10000")
-    for name in ("stage1_iterations", "stage3_iterations", "densify_until",
+    for name in ("stage1_iterations", "stage3_iterations", "densify_from", "densify_until",
                  "stage3_densify_until", "joint_classify_iteration",
                  "em_refine_joint_iterations"):
         assert getattr(scaled, name) == getattr(fast, name), name
     small, n = budget_config("3000", seed=4)
     assert (n, small.stage3_iterations, small.joint_classify_iteration) == (3000, 3000, 1000)
     assert small.seed == 4
+    for budget in ("1000", "3000"):  # every budget of the ladder densifies, several times
+        config, _ = budget_config(budget)
+        window = config.densify_until - config.densify_from
+        assert config.densify_from >= 1 and window >= 2 * config.densify_interval, budget
     assert budget_config("quick")[0] == make_config("quick")
     quick = make_config("quick")
     double, n = budget_config("quick:600")  # the quick schedule stretched to 600 + 600

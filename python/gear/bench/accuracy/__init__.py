@@ -110,6 +110,10 @@ def budget_config(budget: str, seed: int = 0) -> tuple[Any, int]:
     scale = n / base.stage1_iterations
     changes: dict[str, Any] = {"seed": seed, "stage1_iterations": n, "stage3_iterations": n}
     changes.update({f: max(1, round(getattr(base, f) * scale)) for f in _SCALED_FIELDS})
+    # The densification warm-up is a fixed count of iterations (the fast profile keeps the full
+    # one's), but a small budget's window would close before it ends and the run would never
+    # densify: the warm-up takes at most the window's first third.
+    changes["densify_from"] = min(base.densify_from, changes["densify_until"] // 3)
     return base.replace(**changes), n
 
 
