@@ -103,6 +103,9 @@ CASES = [
     ("bench geometry --only no_such_family", "invalid choice"),
     ("bench raster --repeats abc", "invalid int value"),
     ("bench raster --cases no_such_case", "--cases"),
+    ("bench step {new}", "--scene"),
+    ("bench step {new} --scene {scene} --steps 0", "--steps"),
+    ("bench step {missing} --scene {scene}", "past stage 2"),
 ]
 
 

@@ -100,6 +100,15 @@ class Refine(RefineState):
                 "stage_state": self.state_dict()}
 
 
+def refine_state(g: Gaussians, frozen: Gaussians, coarse: Stage2Result,
+                 views: dict[str, Sequence[TrainView]], config: TrainConfig) -> Refine:
+    """Stage 3's state on the canonical Gaussians `g` (with part logits) and the frozen stage-1
+    model, the motions starting from stage 2's."""
+    return Refine(g, PartMotion.from_rt(coarse.motions), frozen, views[coarse.canonical],
+                  views[coarse.target], config, config.seed * 1000 + 7,
+                  init_motions=coarse.candidates, canonical=coarse.canonical)
+
+
 def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
                  views: dict[str, Sequence[TrainView]], config: TrainConfig, runner: Runner,
                  resume: dict | None) -> Stage3Result | None:
@@ -121,9 +130,7 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
         g.add_param("logits", coarse.logits, c.lr_logits)
         frozen = base.clone()
         start = 0
-    stage = Refine(g, PartMotion.from_rt(coarse.motions), frozen, views[coarse.canonical],
-                   views[coarse.target], c, c.seed * 1000 + 7,
-                   init_motions=coarse.candidates, canonical=coarse.canonical)
+    stage = refine_state(g, frozen, coarse, views, c)
     if start:
         stage.load_state_dict(resume["stage_state"])
     runner.run(stage, start, c.stage3_iterations)
