@@ -144,14 +144,21 @@ def seen_change(
     points: np.ndarray, motion: Hypothesis, on_surface: SurfaceTest, tolerance: float
 ) -> float:
     """Whether the target images see a component move: the smaller of the fraction of its
-    centres on the target's surface where `motion` puts them and the fraction seen through
-    (empty) where they are. Matter only one state reveals (a cabinet's interior, hidden behind
-    the closed door, not empty) or a surface the two reconstructions merely place a little
-    differently (still there) scores low."""
+    centres on the target's surface where `motion` puts them (of those the images can see
+    there) and the fraction seen through (empty) where they are. Matter only one state reveals
+    (a cabinet's interior, hidden behind the closed door, not empty) or a surface the two
+    reconstructions merely place a little differently (still there) scores low.
+
+    A centre that the motion puts behind the target's surface in every view (neither on it nor
+    seen through) is out of sight, not contradicted: a pushed-in drawer's box disappears into
+    the cabinet. Counting it as missed rejected a well-trained drawer whose hidden box holds
+    half of its Gaussians; a component moved wholly out of sight is still not seen to move."""
     moved = points @ np.asarray(motion.rot).T + np.asarray(motion.trans)
-    landed, _ = on_surface(moved, tolerance)
+    landed, in_front = on_surface(moved, tolerance)
+    visible = landed | in_front
     _, vacated = on_surface(points, tolerance)
-    return float(min(landed.mean(), vacated.mean()))
+    landed_share = landed.sum() / visible.sum() if visible.any() else 0.0
+    return float(min(landed_share, vacated.mean()))
 
 
 def _split_by_motion(split: VoxelSplit, mask: np.ndarray, motion: Hypothesis) -> list[np.ndarray]:
