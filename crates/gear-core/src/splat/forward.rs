@@ -128,7 +128,7 @@ pub fn forward(
     camera: &Camera,
     options: &RenderOptions,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
-    forward_impl(gaussians, camera, options, true, false, None, false)
+    forward_impl(gaussians, camera, options, ForwardRun::default())
 }
 
 /// [`forward`] with the counting variant of the blend, which also fills
@@ -138,7 +138,15 @@ pub fn forward_counted(
     camera: &Camera,
     options: &RenderOptions,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
-    forward_impl(gaussians, camera, options, true, false, None, true)
+    forward_impl(
+        gaussians,
+        camera,
+        options,
+        ForwardRun {
+            counting: true,
+            ..ForwardRun::default()
+        },
+    )
 }
 
 /// Values per pixel in the largest per-pixel buffer of a band: the image (and, in the
@@ -164,19 +172,56 @@ fn band_rows(width: u32, height: u32, words: u64, limit: u64) -> Result<u32> {
     Ok(rows.min(u64::from(height)) as u32)
 }
 
-/// [`forward`], optionally without subgroup operations even where the adapter has them,
-/// filling the outputs with NaN first (tests: both paths run, unwritten pixels show), and with
-/// a smaller storage binding limit than the adapter's (tests: bands on small images), and with
-/// the blend's counters (`counting`).
+/// How [`forward_impl`] runs, beyond what the caller renders: the switches that tests and the
+/// counting variant set. [`ForwardRun::default`] is what [`forward`] does.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct ForwardRun {
+    /// Use subgroup operations where the adapter has them (false: the per-row path).
+    pub allow_subgroups: bool,
+    /// Fill the outputs with NaN first, so that unwritten pixels show.
+    pub poison: bool,
+    /// A smaller storage binding limit than the adapter's (bands on small images).
+    pub binding_limit: Option<u64>,
+    /// The blend variant that also counts evaluations ([`ForwardState::counts`]).
+    pub counting: bool,
+}
+
+impl Default for ForwardRun {
+    fn default() -> Self {
+        Self {
+            allow_subgroups: true,
+            poison: false,
+            binding_limit: None,
+            counting: false,
+        }
+    }
+}
+
+impl ForwardRun {
+    /// The tests' run: outputs poisoned first, subgroups as `allow_subgroups` says.
+    #[cfg(test)]
+    pub(crate) fn checked(allow_subgroups: bool) -> Self {
+        Self {
+            allow_subgroups,
+            poison: true,
+            ..Self::default()
+        }
+    }
+}
+
+/// [`forward`] run as `run` says.
 pub(crate) fn forward_impl(
     gaussians: &Gaussians,
     camera: &Camera,
     options: &RenderOptions,
-    allow_subgroups: bool,
-    poison: bool,
-    binding_limit: Option<u64>,
-    counting: bool,
+    run: ForwardRun,
 ) -> Result<(RenderOutput<f32>, ForwardState)> {
+    let ForwardRun {
+        allow_subgroups,
+        poison,
+        binding_limit,
+        counting,
+    } = run;
     camera.validate()?;
     gaussians.validate()?;
     options.validate(gaussians.channels)?;

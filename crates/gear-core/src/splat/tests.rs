@@ -3,7 +3,7 @@
 //! with NaN before the kernels run, so an unwritten pixel or gradient fails.
 
 use super::backward::{backward_impl, Accumulation};
-use super::forward::forward_impl;
+use super::forward::{forward_impl, ForwardRun};
 use super::reference;
 use super::test_rng::Rng;
 use super::types::{Camera, GaussianGradients, OutputGradients, OwnedGaussians, RenderOptions};
@@ -189,7 +189,7 @@ fn forward_errors(scene: &OwnedGaussians, cam: &Camera, depth: bool) -> (ImageEr
     let (mut image, mut depth_err) = (ImageError::default(), ImageError::default());
     for subgroups in subgroup_choices() {
         let (gpu, _) =
-            forward_impl(&scene.view(), cam, &opts, subgroups, true, None, false).unwrap();
+            forward_impl(&scene.view(), cam, &opts, ForwardRun::checked(subgroups)).unwrap();
         image = image
             .worst(ImageError::of(&gpu.features, &reference.features))
             .worst(ImageError::of(&gpu.alpha, &reference.alpha));
@@ -252,8 +252,13 @@ fn gradients(
     path: BackwardPath,
 ) -> (GaussianGradients<f32>, GaussianGradients<f64>) {
     let opts = options(scene.channels, depth);
-    let (_, state) =
-        forward_impl(&scene.view(), cam, &opts, path.subgroups, true, None, false).unwrap();
+    let (_, state) = forward_impl(
+        &scene.view(),
+        cam,
+        &opts,
+        ForwardRun::checked(path.subgroups),
+    )
+    .unwrap();
     let img = random_image_grads(cam.pixels(), scene.channels, 99);
     let grads = OutputGradients {
         features: &img[0][..],
@@ -393,10 +398,7 @@ fn features_grad_off_keeps_other_gradients() {
                     &scene.view(),
                     &cam,
                     &opts,
-                    path.subgroups,
-                    true,
-                    None,
-                    false,
+                    ForwardRun::checked(path.subgroups),
                 )
                 .unwrap();
                 let run = |features_grad| {
@@ -471,8 +473,13 @@ fn check_finite(
     };
     let mut last = None;
     for path in backward_paths() {
-        let (out, state) =
-            forward_impl(&scene.view(), cam, &opts, path.subgroups, true, None, false).unwrap();
+        let (out, state) = forward_impl(
+            &scene.view(),
+            cam,
+            &opts,
+            ForwardRun::checked(path.subgroups),
+        )
+        .unwrap();
         let depth = out.depth.as_ref().unwrap();
         assert!(
             all_finite(&out.features) && all_finite(&out.alpha) && all_finite(depth),
@@ -705,10 +712,18 @@ fn widened(g: &GaussianGradients<f32>) -> GaussianGradients<f64> {
 fn banded_matches_whole(scene: &OwnedGaussians, cam: &Camera, depth: bool, limit: u64) -> usize {
     let opts = options(scene.channels, depth);
     let (whole, whole_state) =
-        forward_impl(&scene.view(), cam, &opts, true, true, None, false).unwrap();
+        forward_impl(&scene.view(), cam, &opts, ForwardRun::checked(true)).unwrap();
     assert_eq!(whole_state.bands(), 1);
-    let (banded, state) =
-        forward_impl(&scene.view(), cam, &opts, true, true, Some(limit), false).unwrap();
+    let (banded, state) = forward_impl(
+        &scene.view(),
+        cam,
+        &opts,
+        ForwardRun {
+            binding_limit: Some(limit),
+            ..ForwardRun::checked(true)
+        },
+    )
+    .unwrap();
     assert!(
         banded == whole,
         "banded images differ from the whole frame's"
@@ -852,9 +867,17 @@ fn blend_counters_match_the_cpu_executor() {
         for subgroups in subgroup_choices() {
             let view = scene.view();
             let (plain, _) =
-                forward_impl(&view, &cam, &opts, subgroups, true, None, false).unwrap();
-            let (counted, state) =
-                forward_impl(&view, &cam, &opts, subgroups, true, None, true).unwrap();
+                forward_impl(&view, &cam, &opts, ForwardRun::checked(subgroups)).unwrap();
+            let (counted, state) = forward_impl(
+                &view,
+                &cam,
+                &opts,
+                ForwardRun {
+                    counting: true,
+                    ..ForwardRun::checked(subgroups)
+                },
+            )
+            .unwrap();
             assert_eq!(
                 plain, counted,
                 "subgroups {subgroups}: counting changed the images"
