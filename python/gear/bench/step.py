@@ -32,7 +32,7 @@ from gear.device import limit_torch_threads
 from gear.pipeline.common import Stage, TrainView
 from gear.pipeline.stage1 import ReconstructState, Stage1Result
 from gear.pipeline.stage2 import Stage2Result
-from gear.pipeline.stage3.refine import Refine, refine_state
+from gear.pipeline.stage3.refine import Refine, refine_state, resumed_refine_state
 from gear.run_folder import RunFolderError
 
 # The profiler's names for the rasterizer's autograd function and for the optimisers' steps.
@@ -112,12 +112,8 @@ def phases(run_dir: Path, scene_dir: Path) -> Iterator[tuple[str, Stage, int]]:
 def stage3_state(saved: dict, models: dict, coarse: Stage2Result,
                  views: dict[str, list[TrainView]], config: TrainConfig) -> Refine:
     """Stage 3's state as the checkpoint left it: in training, or the refined result."""
-    if saved.get("current") is not None and str(saved["stage"]) == "stage3":
-        state = refine_state(checkpoint.gaussians_from_state(saved["current"]),
-                             checkpoint.gaussians_from_state(saved["frozen"]), coarse, views,
-                             config)
-        state.load_state_dict(saved["stage_state"])
-        return state
+    if str(saved["stage"]) == "stage3":
+        return resumed_refine_state(saved, coarse, views, config)
     refined = saved.get("refined")
     if refined is None:
         raise RunFolderError("the run has not reached stage 3 yet: time it once stage 3 runs")

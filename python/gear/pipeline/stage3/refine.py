@@ -109,6 +109,15 @@ def refine_state(g: Gaussians, frozen: Gaussians, coarse: Stage2Result,
                   init_motions=coarse.candidates, canonical=coarse.canonical)
 
 
+def resumed_refine_state(saved: dict, coarse: Stage2Result,
+                         views: dict[str, Sequence[TrainView]], config: TrainConfig) -> Refine:
+    """Stage 3's state as a checkpoint taken during stage 3 (`saved`) left it."""
+    stage = refine_state(checkpoint.gaussians_from_state(saved["current"]),
+                         checkpoint.gaussians_from_state(saved["frozen"]), coarse, views, config)
+    stage.load_state_dict(saved["stage_state"])
+    return stage
+
+
 def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
                  views: dict[str, Sequence[TrainView]], config: TrainConfig, runner: Runner,
                  resume: dict | None) -> Stage3Result | None:
@@ -121,18 +130,12 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
     if resume is not None and resume["stage"] == "stage3-done":
         return Stage3Result.from_checkpoint(resume["refined"])
     if resume is not None and resume["stage"] == "stage3":
-        g = checkpoint.gaussians_from_state(resume["current"])
-        frozen = checkpoint.gaussians_from_state(resume["frozen"])
-        start = resume["iteration"]
+        stage, start = resumed_refine_state(resume, coarse, views, c), resume["iteration"]
     else:
         base = models[coarse.canonical]
         g = base.clone()
         g.add_param("logits", coarse.logits, c.lr_logits)
-        frozen = base.clone()
-        start = 0
-    stage = refine_state(g, frozen, coarse, views, c)
-    if start:
-        stage.load_state_dict(resume["stage_state"])
+        stage, start = refine_state(g, base.clone(), coarse, views, c), 0
     runner.run(stage, start, c.stage3_iterations)
     result = stage.result()
     runner.finished("refined", result.to_checkpoint())
