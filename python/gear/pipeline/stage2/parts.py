@@ -12,6 +12,7 @@ import numpy as np
 
 from gear import geometry
 from gear.pipeline.stage2.hypotheses import DETECT_OVERLAP, IDENTITY, Hypothesis, fit_plane
+from gear.pipeline.stage2.regions import AGREE_VOXELS, MERGE_COST, extra_residual, motion_regions
 from gear.pipeline.stage2.voxels import (
     MAX_TARGET_CANDIDATES,
     MIN_PART_VOXELS,
@@ -43,9 +44,6 @@ SURFACE_TOLERANCE_VOXELS = 2.0
 # A piece whose best motion leaves at least this fraction of its cells off target matter is
 # split: the rest gets a motion of its own (_split_by_motion).
 SPLIT_FRACTION = 0.2
-# Two motions of a piece agree when they move its centres to within this many voxels of each
-# other (median): the same rigid part, read from two fragments (_moves_along).
-AGREE_VOXELS = 2.0
 # look(points [M,3], tolerance) -> (on_surface [M] bool, free [M] bool): which points lie on the
 # surface the target state's images show (within `tolerance` in depth) and which points those
 # images see through (empty space).
@@ -109,18 +107,24 @@ def seed_logits(part_of_point: np.ndarray, num_parts: int) -> np.ndarray:
 
 
 def _moves_along(
-    split: VoxelSplit, cells: np.ndarray, points: np.ndarray, motion: Hypothesis, own: Hypothesis
+    split: VoxelSplit, cells: np.ndarray, points: np.ndarray, motion: Hypothesis,
+    hyps: list[Hypothesis], region: bool = False,
 ) -> bool:
-    """Whether a component (its `cells` and centres `points`) moves with an existing part: that
-    part's motion explains it (is trusted on its cells) and lands it nearly as well as the
-    component's own best motion (within TIE_MARGIN when it explains at least as much of the
-    change), or agrees with that motion, moving its centres to within
-    AGREE_VOXELS of where its own motion puts them (median). Both readings fit the same turn
-    of a lever to its two fragments; the small one's own fit may land its few cells a little
-    better, which is noise, not a second part."""
+    """Whether a component (its `cells` and centres `points`, its own readings `hyps`, the
+    best first) moves with an existing part: that part's `motion` explains it (is trusted on
+    its cells) and lands it nearly as well as the component's own best motion (within
+    TIE_MARGIN when it explains at least as much of the change), or agrees with that motion,
+    moving its centres to within AGREE_VOXELS of where its own motion puts them (median). Both
+    readings fit the same turn of a lever to its two fragments; the small one's own fit may
+    land its few cells a little better, which is noise, not a second part. A `region` (cut
+    off because it needs a motion of its own, regions.motion_regions) must also pass the test
+    that cut it: `motion` may cost its centres at most MERGE_COST more than its own."""
+    own = hyps[0]
     shared = split.score(cells, motion.kind, motion.rot, motion.trans)
     if not shared.trusted:
         return False
+    if region and extra_residual(split, points, motion, hyps) > MERGE_COST:
+        return False  # cut off by the test that it needs a motion of its own
     if shared.landed >= own.landed - 0.05:
         return True
     if shared.landed >= own.landed - TIE_MARGIN and shared.explained >= own.explained:
@@ -175,6 +179,32 @@ def _split_by_motion(split: VoxelSplit, mask: np.ndarray, motion: Hypothesis) ->
     rest_mask[tuple(rest.T)] = True
     labels, sizes = geometry.components(rest_mask, connectivity=26)
     return [labels == i for i, size in enumerate(sizes, start=1) if size >= MIN_PART_VOXELS]
+
+
+def _pieces_apart(
+    split: VoxelSplit, mask: np.ndarray, hyps: list[Hypothesis],
+    points_of: Callable[[np.ndarray], np.ndarray], total: int | None, extent: float,
+    by_regions: bool,
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The pieces to cut off the cells `mask` as parts of their own (_moves_on_its_own;
+    `points_of(cells)` gives the canonical centres in `cells`): first the cells its motion
+    (the reading in `hyps` landing most) leaves off target matter (_split_by_motion), then,
+    of what remains, the regions that need motions of their own (regions.motion_regions,
+    all but the largest; not when `by_regions` is False: the piece is such a region already):
+    touching doors turned by a few tens of degrees land nearly whole under one slide, so only
+    the motions of their regions tell them apart. Returns (the missed pieces, the regions)."""
+    # Split by the reading landing most: a door folded by half a turn shows the target its
+    # formerly hidden face, so its fold lands only half of it where the slide of the slab
+    # lands all.
+    widest = max(hyps, key=lambda h: h.landed)
+    rest = [piece for piece in _split_by_motion(split, mask, widest)
+            if _moves_on_its_own(split, piece, points_of(piece), total, extent)]
+    remaining = mask.copy()
+    for piece in rest:
+        remaining &= ~piece
+    regions = motion_regions(split, remaining, points_of(remaining), hyps) if by_regions else []
+    return rest, [piece for piece in regions[1:]
+                  if _moves_on_its_own(split, piece, points_of(piece), total, extent)]
 
 
 def _moves_on_its_own(
@@ -250,6 +280,7 @@ def find_parts(
     next_label = len(sizes) + 1
     parts: list[_Part] = []
     spare: list[_Part] = []
+    regions_of: set[int] = set()  # pieces that are already one motion's region
     while queue:
         size, comp = heapq.heappop(queue)
         mask = pieces == comp
@@ -263,7 +294,7 @@ def find_parts(
         # Any reading of a part counts: a safe door's dial, a component of its own, moves
         # with the door only under the half turn that may not be the door's first reading.
         owner = next((p for p in parts
-                      if any(_moves_along(split, cells, points, h, hyps[0])
+                      if any(_moves_along(split, cells, points, h, hyps, comp in regions_of)
                              for h in p.hypotheses)), None)
         if owner is not None:
             owner.components.append(comp)
@@ -273,18 +304,18 @@ def find_parts(
         # uncovered by its door, lands on the closed door once shifted), so without them
         # components stay whole.
         if hyps[0].trusted and (on_surface is not None or wanted is not None):
-            # Split by the reading landing most: a door folded by half a turn shows the target
-            # its formerly hidden face, so its fold lands only half of it where the slide of
-            # the slab lands all. A piece is cut off only when it is a part of its own: big
-            # enough, with a motion that lands it and claims change. The far end of a small
-            # lever, missed by its slightly wrong first turn, is neither.
-            widest = max(hyps, key=lambda h: h.landed)
-            rest = [piece for piece in _split_by_motion(split, mask, widest)
-                    if _moves_on_its_own(split, piece, canon[points_in(piece)],
-                                         len(canon) if wanted is None else None, extent)]
-            for piece in rest:
+            # A piece is cut off only when it is a part of its own: big enough, with a motion
+            # that lands it and claims change. The far end of a small lever, missed by its
+            # slightly wrong first turn, is neither.
+            total = len(canon) if wanted is None else None
+            missed, apart = _pieces_apart(split, mask, hyps, lambda m: canon[points_in(m)],
+                                          total, extent, comp not in regions_of)
+            rest = missed + apart
+            for index, piece in enumerate(rest):
                 mask &= ~piece
                 pieces[piece] = next_label
+                if index >= len(missed):
+                    regions_of.add(next_label)  # one motion's region: not cut again
                 heapq.heappush(queue, (-int(piece.sum()), next_label))
                 next_label += 1
             if rest:

@@ -201,16 +201,15 @@ def target_pieces(
 
 
 def blob_hinges(
-    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray
+    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, floor: float
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Turns of the cells `src_mask` holding `points`, a piece that is neither a plane nor a
     rod (hypotheses.swept_hinges): about its own principal axes, the target's and those of the
-    largest target pieces (at least a fifth of its size). A sweep over so many axes, angles
+    largest target pieces (at least `floor` voxels). A sweep over so many axes, angles
     and starts also fits part of a drawer or of a noise blob somewhere, so only turns that
     land nearly all of the piece (BLOB_LANDED of its cells on target matter) and its centres
     closer than the best slide does (by BLOB_MARGIN in VoxelSplit.surface_fit) are kept: two
     touching parts, one blob, are left to the slide and the split by motion."""
-    floor = max(MIN_PART_VOXELS, 0.2 * int(src_mask.sum()))
     target = split.target_tree.data
     pieces = [target[inside] for size, inside in split.pieces[:SWEEP_TARGETS] if size >= floor]
     planes = [fit_plane(piece) for piece in pieces]
@@ -229,13 +228,19 @@ def blob_hinges(
             and split.score(cells, "hinge", r, t).landed >= BLOB_LANDED]
 
 
-def init_motion(split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray) -> list[Hypothesis]:
+def init_motion(
+    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, of_size: int | None = None,
+    sweep: bool = True,
+) -> list[Hypothesis]:
     """Initial motion of the canonical cells `src_mask` (holding the centres `points`), and the
     runner-up of the other kind.
 
     Candidates: the plane-intersection hinges with every planar target piece (VoxelSplit.pieces)
-    above a size floor (when the cells' centres are planar), each also about both edges of the
-    slab (the two sides a hinge can be on), the one whose centres land closest
+    above a size floor, a fifth of the cells or of `of_size` when given (for a chunk of a
+    larger piece, whose target is larger than the chunk's), when the cells' centres are
+    planar; each also about both edges of the slab (the two sides a hinge can be on); for a
+    piece neither planar nor a rod, the swept turns of blob_hinges unless `sweep` is False;
+    the one whose centres land closest
     (VoxelSplit.surface_fit), and the best whole-voxel slide. Among those
     explaining enough target change, the one landing most cells on target matter wins (a hinge
     on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
@@ -249,8 +254,8 @@ def init_motion(split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray) -> 
     canon_plane = fit_plane(points)
     candidates: list[Hypothesis] = []
     fold_offsets = split.grid.voxel_size * np.arange(-2.0, 2.5, 0.5)
+    floor = max(MIN_PART_VOXELS, 0.2 * (of_size or len(src_cells)))
     if canon_plane.is_plane or canon_plane.is_rod:
-        floor = max(MIN_PART_VOXELS, 0.2 * len(src_cells))
         for size, inside in split.pieces:
             if size < floor:
                 break
@@ -267,8 +272,8 @@ def init_motion(split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray) -> 
                     hyp = split.score(src_cells, "hinge", r, t)
                     hyp.fold = folded
                     candidates.append(hyp)
-    else:
-        blobs = blob_hinges(split, src_mask, points)
+    elif sweep:
+        blobs = blob_hinges(split, src_mask, points, floor)
         candidates += [split.score(src_cells, "hinge", r, t) for r, t in blobs]
     hinges = [h for h in candidates if h.trusted]
     candidates = []

@@ -1,0 +1,83 @@
+"""Stage 2's split of one dynamic piece by the motions its regions need
+(`regions.motion_regions`): two doors on one hinge line, turned by different angles, touch
+along their shared edge and form one piece; they must come out as two regions, each one
+door, while two doors turned alike (one rigid motion) stay one region."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from gear.pipeline.stage2.regions import motion_regions, refine_rigid
+from gear.pipeline.stage2.voxels import Scale, init_motion, split_static_dynamic
+from test_coarse import FRONT, box_surface, hinge_motion
+
+NOISE = 0.01  # centre jitter, about a third of the voxel: a reconstruction's, not a mesh's
+
+
+def stacked_doors(top_deg: float, bottom_deg: float, n: int = 8000, seed: int = 0):
+    """A cabinet with a top and a bottom door on one left hinge line (axis -z), opened by
+    `top_deg` and `bottom_deg`; centres jittered by NOISE. Returns (closed, open, which
+    door each open-state centre belongs to: 0 body, 1 top, 2 bottom)."""
+    rng = np.random.default_rng(seed)
+    axis, pivot = np.array([0.0, 0.0, -1.0]), np.array([0.0, -0.025, 0.0])
+
+    def state(open_: bool) -> tuple[np.ndarray, np.ndarray]:
+        body = box_surface([0, 0, 0], [1.2, 1, 1.4], int(0.5 * n), rng, skip=(FRONT,))
+        top = box_surface([0, -0.04, 0.7], [1.2, -0.01, 1.4], int(0.25 * n), rng)
+        bottom = box_surface([0, -0.04, 0], [1.2, -0.01, 0.7], int(0.25 * n), rng)
+        if open_:
+            for deg, door in ((top_deg, top), (bottom_deg, bottom)):
+                rot, trans = hinge_motion(axis, pivot, deg)
+                door[:] = door @ rot.T + trans
+        points = np.concatenate([body, top, bottom])
+        owner = np.repeat([0, 1, 2], [len(body), len(top), len(bottom)])
+        return points + rng.normal(0.0, NOISE, points.shape), owner
+
+    (closed, _), (opened, owner) = state(False), state(True)
+    return closed, opened, owner
+
+
+def regions_of_the_doors(top_deg: float, bottom_deg: float):
+    """The regions of the open state's largest dynamic piece, each as the count of its
+    centres per owner (body, top, bottom)."""
+    closed, opened, owner = stacked_doors(top_deg, bottom_deg)
+    size = Scale.of(np.concatenate([opened, closed])).voxel_size(single_part=False)
+    split = split_static_dynamic(opened, closed, size)
+    labels = split.grid.point_labels(opened, split.labels[0])
+    mask = split.labels[0] == 1
+    points, owners = opened[labels == 1], owner[labels == 1]
+    # The premise: both doors are in that one piece.
+    assert np.bincount(owners, minlength=3)[1:].min() > 0.3 * len(points)
+    regions = motion_regions(split, mask, points, init_motion(split, mask, points))
+    cells = split.grid.voxel_of(points)
+    return [np.bincount(owners[r[tuple(cells.T)]], minlength=3) for r in regions]
+
+
+def test_doors_on_one_hinge_turned_apart_are_two_regions():
+    regions = regions_of_the_doors(40.0, 20.0)
+    assert len(regions) == 2
+    for counts in regions:
+        # Each region is one door (a few centres of the other near the shared hinge).
+        assert counts[1:].max() >= 0.95 * counts.sum()
+    assert {int(np.argmax(c[1:])) for c in regions} == {0, 1}
+
+
+def test_doors_turned_alike_are_one_region():
+    regions = regions_of_the_doors(30.0, 30.0)
+    assert len(regions) == 1
+
+
+def test_refine_rigid_recovers_a_small_offset_of_the_true_motion():
+    rng = np.random.default_rng(2)
+    points = box_surface([0, 0, 0], [1.0, 0.6, 0.3], 3000, rng)
+    rot, trans = hinge_motion(np.array([0.0, 0.0, 1.0]), np.array([0.2, 0.1, 0.0]), 25.0)
+    tree = cKDTree(points @ rot.T + trans)
+    start_rot, start_trans = hinge_motion(np.array([0.0, 0.0, 1.0]),
+                                          np.array([0.2, 0.1, 0.0]), 21.0)
+    got_rot, got_trans = refine_rigid(points, start_rot, start_trans + 0.02, tree, 25)
+    moved = points @ got_rot.T + got_trans
+    truth = points @ rot.T + trans
+    assert np.abs(moved - truth).max() < 5e-3
+    assert np.linalg.det(got_rot) == pytest.approx(1.0)
