@@ -131,9 +131,9 @@ def motion_regions(
             sub = np.zeros_like(mask)
             sub[tuple(cells[chunk == c].T)] = True
             # A chunk's own readings: no blob sweep (seconds each; the piece's readings have
-            # it), target pieces of at least a twentieth of the piece (a door's own closed
-            # place, not every fragment: each costs a dozen hinge scores).
-            motions += [h for h in init_motion(split, sub, points[held], len(cells) // 4,
+            # it), target pieces of at least a fifth of the piece, as for the piece itself
+            # (docs/method.md: a twentieth found more doors and cut a blurred door in two).
+            motions += [h for h in init_motion(split, sub, points[held], len(cells),
                                                sweep=False) if h.trusted]
     if not motions:
         return [mask]
