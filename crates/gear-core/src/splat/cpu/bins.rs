@@ -13,6 +13,7 @@ use rayon::prelude::*;
 use super::lanes::LANES as BLOCK;
 use super::lanes::{array, mask, select, with_avx2, Lanes, LANES};
 use super::project::{Prepared, Screen, View};
+use super::spares::Spares;
 use super::TILE;
 use crate::splat::constants;
 use crate::splat::types::{Camera, Gaussians};
@@ -189,6 +190,23 @@ impl Bins {
     }
 }
 
+impl Drop for Bins {
+    fn drop(&mut self) {
+        ENTRIES.keep(std::mem::take(&mut self.entries));
+        ENTRY_FEATURES.keep(std::mem::take(&mut self.entry_features));
+        ENTRY_PAIRS.keep(std::mem::take(&mut self.entry_pairs));
+        PREPARED.keep(std::mem::take(&mut self.prepared));
+    }
+}
+
+// Buffers of earlier passes (see `spares`): the lists, and binning's own scratch.
+static ENTRIES: Spares<Entry> = Spares::new();
+static ENTRY_FEATURES: Spares<f32> = Spares::new();
+static ENTRY_PAIRS: Spares<u32> = Spares::new();
+static PREPARED: Spares<Prepared> = Spares::new();
+static SPLATS: Spares<Entry> = Spares::new();
+static PAIRS: Spares<[u32; 2]> = Spares::new();
+
 /// The image's tile grid and size, for binning.
 #[derive(Clone, Copy)]
 struct Grid {
@@ -244,34 +262,6 @@ fn bin_chunk_body(
     pairs
 }
 
-/// `keys` (depth bits << 32 | index, in index order) sorted by depth, ties in index order: a
-/// stable least-significant-digit radix sort of the depth bits, a byte per pass (passes where
-/// every key has the same byte are skipped). z > 0, so its bits order like the floats.
-fn depth_order(mut keys: Vec<u64>) -> Vec<u64> {
-    let mut spare = vec![0u64; keys.len()];
-    for shift in [32, 40, 48, 56] {
-        let digit = |key: u64| (key >> shift) as usize & 0xff;
-        let mut offsets = [0usize; 256];
-        for &key in &keys {
-            offsets[digit(key)] += 1;
-        }
-        if offsets.contains(&keys.len()) {
-            continue;
-        }
-        let mut total = 0;
-        for slot in offsets.iter_mut() {
-            (*slot, total) = (total, total + *slot);
-        }
-        for &key in &keys {
-            let d = digit(key);
-            spare[offsets[d]] = key;
-            offsets[d] += 1;
-        }
-        std::mem::swap(&mut keys, &mut spare);
-    }
-    keys
-}
-
 /// Projects and bins `gaussians`; call inside the executor's thread pool.
 ///
 /// Everything per Gaussian runs in index order (parallel, streaming through memory); only the
@@ -287,12 +277,12 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     };
     let n = gaussians.len();
     let channels = gaussians.channels;
-    let mut prepared = vec![Prepared::default(); n.div_ceil(BLOCK)];
-    let mut splats = vec![Entry::default(); n];
+    let mut prepared = PREPARED.take(n.div_ceil(BLOCK), Prepared::default());
+    let mut splats = SPLATS.take(n, Entry::default());
     let mut counts = vec![0u32; n];
     // Chunks of Gaussians: few enough for little overhead, enough to balance the threads.
     let chunk = 128 * BLOCK;
-    let pairs: Vec<[u32; 2]> = prepared
+    let chunk_pairs: Vec<Vec<[u32; 2]>> = prepared
         .par_chunks_mut(chunk / BLOCK)
         .zip(splats.par_chunks_mut(chunk))
         .zip(counts.par_chunks_mut(chunk))
@@ -305,25 +295,16 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
             };
             bin_chunk(gaussians, c * chunk, out, &view, grid)
         })
-        .collect::<Vec<_>>()
-        .concat();
+        .collect();
+    let mut pairs = PAIRS.take(0, [0, 0]);
+    for chunk in &chunk_pairs {
+        pairs.extend_from_slice(chunk);
+    }
     let mut pair_offsets = vec![0u32; n + 1];
     for (i, &count) in counts.iter().enumerate() {
         pair_offsets[i + 1] = pair_offsets[i] + count;
     }
 
-    // Depth order of the Gaussians with pairs, ties by index.
-    let by_depth = depth_order(
-        splats
-            .iter()
-            .zip(&counts)
-            .enumerate()
-            .filter(|(_, (_, &count))| count > 0)
-            .map(|(i, (s, _))| (u64::from(s.z.to_bits()) << 32) | i as u64)
-            .collect(),
-    );
-
-    // Counting sort of the pairs by tile, fed in depth order, so every list is in depth order.
     let tile_count = (tiles[0] * tiles[1]) as usize;
     let mut tile_offsets = vec![0u32; tile_count + 1];
     for &[t, _] in &pairs {
@@ -332,55 +313,144 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     for t in 0..tile_count {
         tile_offsets[t + 1] += tile_offsets[t];
     }
-    let mut cursor = tile_offsets[..tile_count].to_vec();
-    let mut entries = vec![Entry::default(); pairs.len()];
-    let mut entry_features = vec![0.0f32; pairs.len() * channels];
-    let mut entry_pairs = vec![0u32; pairs.len()];
-    for &key in &by_depth {
-        let g = key as u32 as usize;
-        let features = &gaussians.features[g * channels..(g + 1) * channels];
-        for pair in pair_offsets[g] as usize..pair_offsets[g + 1] as usize {
-            let [t, rows] = pairs[pair];
-            let e = cursor[t as usize] as usize;
-            cursor[t as usize] += 1;
-            entries[e] = Entry { rows, ..splats[g] };
-            entry_pairs[e] = pair as u32;
-            entry_features[e * channels..(e + 1) * channels].copy_from_slice(features);
-        }
-    }
+    let mut lists = Lists {
+        entries: ENTRIES.take(pairs.len(), Entry::default()),
+        features: ENTRY_FEATURES.take(pairs.len() * channels, 0.0),
+        pairs: ENTRY_PAIRS.take(pairs.len(), 0),
+    };
+    lists.fill(&tile_offsets, &pairs, &pair_offsets, &splats, gaussians);
+    lists.sort_by_depth(&tile_offsets, channels);
+    SPLATS.keep(splats);
+    PAIRS.keep(pairs);
     Bins {
         tiles_x: tiles[0],
         tiles_y: tiles[1],
         channels,
         tile_offsets,
-        entries,
-        entry_features,
+        entries: lists.entries,
+        entry_features: lists.features,
         pair_offsets,
-        entry_pairs,
+        entry_pairs: lists.pairs,
         prepared,
         len: n,
     }
 }
 
-#[cfg(test)]
-mod tests {
-    /// The radix sort orders like a comparison sort of (depth, index), ties included.
-    #[test]
-    fn depth_order_matches_sort() {
-        let mut rng = fastrand::Rng::with_seed(5);
-        let depths = [0.01f32, 0.5, 1.0, 1.0, 3.25, 7.0, 1e4];
-        let keys: Vec<u64> = (0..5000u64)
-            .map(|i| {
-                let z = if rng.bool() {
-                    depths[rng.usize(..depths.len())]
-                } else {
-                    rng.f32() * 100.0 + 0.01
-                };
-                (u64::from(z.to_bits()) << 32) | i
-            })
-            .collect();
-        let mut want = keys.clone();
-        want.sort_unstable();
-        assert_eq!(super::depth_order(keys), want);
+/// The tile lists under construction: entry e of every array belongs to the same pair.
+struct Lists {
+    entries: Vec<Entry>,
+    /// Entries x channels.
+    features: Vec<f32>,
+    /// The pair number of each entry.
+    pairs: Vec<u32>,
+}
+
+impl Lists {
+    /// Scatters the pairs to their tiles walking the Gaussians in index order, so that every
+    /// read streams through memory (a walk in depth order gathers each Gaussian from a random
+    /// place, and cost most of the binning). Each list comes out in index order.
+    fn fill(
+        &mut self,
+        tile_offsets: &[u32],
+        pairs: &[[u32; 2]],
+        pair_offsets: &[u32],
+        splats: &[Entry],
+        gaussians: &Gaussians,
+    ) {
+        let channels = gaussians.channels;
+        let mut cursor = tile_offsets[..tile_offsets.len() - 1].to_vec();
+        for (g, splat) in splats.iter().enumerate() {
+            let features = &gaussians.features[g * channels..(g + 1) * channels];
+            for pair in pair_offsets[g] as usize..pair_offsets[g + 1] as usize {
+                let [t, rows] = pairs[pair];
+                let e = cursor[t as usize] as usize;
+                cursor[t as usize] += 1;
+                self.entries[e] = Entry { rows, ..*splat };
+                self.pairs[e] = pair as u32;
+                self.features[e * channels..(e + 1) * channels].copy_from_slice(features);
+            }
+        }
     }
+
+    /// Sorts every tile's list (in index order) by depth, in parallel over the tiles; ties
+    /// keep index order, as in the GPU's stable sort and the reference. z > 0, so its bits
+    /// order like the floats.
+    fn sort_by_depth(&mut self, tile_offsets: &[u32], channels: usize) {
+        let lengths: Vec<usize> = tile_offsets
+            .windows(2)
+            .map(|w| (w[1] - w[0]) as usize)
+            .collect();
+        let entries = split_by_lengths(&mut self.entries, &lengths, 1);
+        let features = split_by_lengths(&mut self.features, &lengths, channels);
+        let pairs = split_by_lengths(&mut self.pairs, &lengths, 1);
+        entries
+            .into_par_iter()
+            .zip(features)
+            .zip(pairs)
+            .for_each_init(
+                TileScratch::default,
+                |scratch, ((entries, features), pairs)| {
+                    scratch.sort(entries, features, pairs, channels)
+                },
+            );
+    }
+}
+
+/// One thread's copies of a tile's list while it is permuted.
+#[derive(Default)]
+struct TileScratch {
+    keys: Vec<u64>,
+    entries: Vec<Entry>,
+    features: Vec<f32>,
+    pairs: Vec<u32>,
+}
+
+impl TileScratch {
+    fn sort(
+        &mut self,
+        entries: &mut [Entry],
+        features: &mut [f32],
+        pairs: &mut [u32],
+        channels: usize,
+    ) {
+        self.keys.clear();
+        self.keys.extend(
+            entries
+                .iter()
+                .enumerate()
+                .map(|(i, e)| (u64::from(e.z.to_bits()) << 32) | i as u64),
+        );
+        if self.keys.windows(2).all(|w| w[0] <= w[1]) {
+            return;
+        }
+        self.keys.sort_unstable();
+        self.entries.clear();
+        self.entries.extend_from_slice(entries);
+        self.features.clear();
+        self.features.extend_from_slice(features);
+        self.pairs.clear();
+        self.pairs.extend_from_slice(pairs);
+        for (to, &key) in self.keys.iter().enumerate() {
+            let from = key as u32 as usize;
+            entries[to] = self.entries[from];
+            pairs[to] = self.pairs[from];
+            features[to * channels..(to + 1) * channels]
+                .copy_from_slice(&self.features[from * channels..(from + 1) * channels]);
+        }
+    }
+}
+
+/// `slice` cut into consecutive pieces of `lengths[i] * stride` elements.
+fn split_by_lengths<'a, T>(
+    mut slice: &'a mut [T],
+    lengths: &[usize],
+    stride: usize,
+) -> Vec<&'a mut [T]> {
+    let mut pieces = Vec::with_capacity(lengths.len());
+    for &length in lengths {
+        let (piece, rest) = slice.split_at_mut(length * stride);
+        pieces.push(piece);
+        slice = rest;
+    }
+    pieces
 }

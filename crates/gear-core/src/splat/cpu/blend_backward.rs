@@ -14,6 +14,7 @@ use super::blend::{PixelState, Row, Scene};
 use super::lanes::{
     array, channels, evaluate, mask, masked, select, with_avx2, with_channels, Lanes, Mask, LANES,
 };
+use super::spares::Spares;
 use super::TILE;
 use crate::splat::constants::MAX_ALPHA;
 use crate::splat::types::OutputGradients;
@@ -62,12 +63,16 @@ impl Records {
     }
 }
 
+/// Record buffers of earlier backwards (see `spares`); the caller keeps each one here when it
+/// has reduced it.
+pub(super) static RECORDS: Spares<f32> = Spares::new();
+
 /// The gradient record of every (tile, entry) pair by pair number (pairs x stride), so that
 /// each Gaussian's records are contiguous; records of pairs no pixel blended are zero.
 pub(super) fn blend_backward(scene: &Scene, replay: &Replay) -> Vec<f32> {
     let bins = scene.bins;
     let stride = replay.stride(scene.channels);
-    let mut values = vec![0.0f32; bins.pairs() * stride];
+    let mut values = RECORDS.take(bins.pairs() * stride, 0.0);
     let records = Records {
         values: values.as_mut_ptr(),
         stride,

@@ -16,6 +16,7 @@ mod blend_backward;
 mod lanes;
 mod pool;
 mod project;
+mod spares;
 mod wide;
 
 #[cfg(test)]
@@ -26,7 +27,7 @@ use rayon::ThreadPool;
 
 use self::bins::{bin, Bins};
 use self::blend::{blend, PixelState, Scene};
-use self::blend_backward::{blend_backward, Replay, GEOMETRY};
+use self::blend_backward::{blend_backward, Replay, GEOMETRY, RECORDS};
 use self::lanes::{array, channels, with_avx2, with_channels, LANES as BLOCK};
 use self::project::{project_backward, View};
 use self::wide::F8;
@@ -166,7 +167,9 @@ pub fn backward_in(
     };
     pool.install(|| {
         let records = blend_backward(&state.scene(), &replay);
-        Ok(reduce(state, &records, features_grad))
+        let r = reduce(state, &records, features_grad);
+        RECORDS.keep(records);
+        Ok(r)
     })
 }
 
