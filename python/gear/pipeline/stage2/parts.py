@@ -18,6 +18,7 @@ from gear.pipeline.stage2.voxels import (
     MIN_PART_VOXELS,
     TIE_MARGIN,
     Scale,
+    SurfaceTest,
     VoxelSplit,
     init_motion,
     split_static_dynamic,
@@ -44,10 +45,10 @@ SURFACE_TOLERANCE_VOXELS = 2.0
 # A piece whose best motion leaves at least this fraction of its cells off target matter is
 # split: the rest gets a motion of its own (_split_by_motion).
 SPLIT_FRACTION = 0.2
-# look(points [M,3], tolerance) -> (on_surface [M] bool, free [M] bool): which points lie on the
-# surface the target state's images show (within `tolerance` in depth) and which points those
-# images see through (empty space).
-SurfaceTest = Callable[[np.ndarray, float], tuple[np.ndarray, np.ndarray]]
+# A piece joins a sliding part only when at least this share of its cross-section across the
+# slide lies within the part's (_in_line).
+IN_LINE_SHARE = 0.5
+IN_LINE_MARGIN = 3.0
 
 
 @dataclass
@@ -132,6 +133,26 @@ def _moves_along(
     apart = np.linalg.norm(points @ (np.asarray(motion.rot) - np.asarray(own.rot)).T
                            + (np.asarray(motion.trans) - np.asarray(own.trans)), axis=1)
     return bool(np.median(apart) <= AGREE_VOXELS * split.grid.voxel_size)
+
+
+def _in_line(cells: np.ndarray, part_cells: np.ndarray, motion: Hypothesis) -> bool:
+    """Whether a piece's `cells` lie in line with a part's `part_cells` along the part's
+    `motion` when it is a slide: at least IN_LINE_SHARE of the piece's cells fall, seen along
+    the slide, inside the box bounding the part's cells (grown by IN_LINE_MARGIN cells: the
+    walls of a drawer's box reach past its front's edges by a cell or two). The front and back
+    of one pulled drawer do; two drawers of a column pulled by the same travel do not, and stay
+    two parts although one motion lands both. (The box, not the part's own cross-section: a
+    sparse model leaves holes in a drawer's front.) Turns always pass."""
+    if motion.kind != "slide":
+        return True
+    direction = np.asarray(motion.trans, dtype=np.float64)
+    direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
+    across = np.linalg.svd(direction[None, :])[2][1:]  # two unit vectors normal to it
+    own = cells @ across.T
+    section = part_cells @ across.T
+    lo, hi = section.min(0) - IN_LINE_MARGIN, section.max(0) + IN_LINE_MARGIN
+    inside = np.all((own >= lo) & (own <= hi), axis=1)
+    return float(inside.mean()) >= IN_LINE_SHARE
 
 
 @dataclass
@@ -255,6 +276,8 @@ def find_parts(
     `on_surface`, when the target images see it move (seen_change >= MIN_SEEN_CHANGE).
     """
     split = split_static_dynamic(canon, target, voxel_size, dilation_radius)
+    split.on_surface = on_surface
+    split.surface_tolerance = SURFACE_TOLERANCE_VOXELS * voxel_size
     pieces = split.labels[0].copy()
     canon_labels = split.grid.point_labels(canon, pieces)
     sizes = split.sizes[0]
@@ -295,6 +318,7 @@ def find_parts(
         # with the door only under the half turn that may not be the door's first reading.
         owner = next((p for p in parts
                       if any(_moves_along(split, cells, points, h, hyps, comp in regions_of)
+                             and _in_line(cells, np.argwhere(np.isin(pieces, p.components)), h)
                              for h in p.hypotheses)), None)
         if owner is not None:
             owner.components.append(comp)

@@ -4,9 +4,11 @@ that grid (docs/method.md, "Stage 2")."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 
 from gear import geometry
@@ -29,6 +31,12 @@ from gear.pipeline.stage2.hypotheses import (
 # (stage 3 picks by the images); among slides this close, the shortest wins.
 TIE_MARGIN = 0.1
 SLIDE_TOLERANCE = 0.05
+# With the target images at hand, the shifts ranking at least this share of the best voxel
+# landing (at most RECHECK_SLIDES of them) are judged again by what the images see, when they
+# see at least MIN_VISIBLE of the moved cells.
+RECHECK_SHARE = 0.5
+RECHECK_SLIDES = 24
+MIN_VISIBLE = 0.2
 # Voxel size from the data: the object's extent divided by these cell counts (a coarse grid for
 # one movable part, a fine one to separate neighbouring parts), but never finer than
 # SPACING_FACTOR times the median spacing of the centres, or static surfaces would not be seen
@@ -44,6 +52,11 @@ BLOB_LANDED = 0.8  # ... and the fraction of its cells it must land on target ma
 MAX_TARGET_CANDIDATES = 16
 MAX_DENSE_CELLS = 1 << 26
 SPACING_SAMPLES = 20000
+
+
+# `test(points [M, 3], tolerance) -> (on_surface [M], seen_through [M])`: what a state's images
+# see at each point (stage2.surface.SurfaceTest).
+SurfaceTest = Callable[[np.ndarray, float], tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass
@@ -92,6 +105,10 @@ class VoxelSplit:
     # Target pieces a canonical piece may turn onto (init_motion): (voxels, mask over the
     # target centres), largest first (see target_pieces).
     pieces: list[tuple[int, np.ndarray]]
+    # The target images' SurfaceTest and its depth tolerance, when find_parts has them:
+    # best_slide then also asks the images (see there).
+    on_surface: SurfaceTest | None = None
+    surface_tolerance: float = 0.0
 
     def score(
         self, src_cells: np.ndarray, kind: str, rot: np.ndarray, trans: np.ndarray
@@ -127,7 +144,8 @@ class VoxelSplit:
 
     def best_slide(self, src_mask: np.ndarray) -> np.ndarray | None:
         """The whole-voxel translation landing most of `src_mask` on target matter among those
-        explaining enough target dynamic cells (None if no shift does)."""
+        explaining enough target dynamic cells (None if no shift does); with the target images
+        at hand, among the well-ranked shifts, the one landing most of what they see."""
         landed, offset = correlate(self.occ_target, src_mask)
         exact, _ = correlate(self.exact_target, src_mask)
         explained, _ = correlate(self.dyn_target, src_mask)
@@ -137,11 +155,44 @@ class VoxelSplit:
         top = rank.max()
         if top < 0:
             return None
+        near = np.argwhere(rank >= (1 - SLIDE_TOLERANCE) * top) + offset
+        if self.on_surface is not None:
+            seen = self._seen_to_land(src_mask, rank, offset)
+            near = near if seen is None else seen
         # Of the shifts nearly as good as the best, the shortest: a drawer among identical
         # drawers also "fits" where its neighbour is.
-        near = np.argwhere(rank >= (1 - SLIDE_TOLERANCE) * top) + offset
         shortest = near[np.argmin(np.linalg.norm(near, axis=1))]
         return shortest * self.grid.voxel_size
+
+    def _seen_to_land(
+        self, src_mask: np.ndarray, rank: np.ndarray, offset: np.ndarray
+    ) -> np.ndarray | None:
+        """Of the shifts ranking at least RECHECK_SHARE of the best, those whose moved cells
+        the target images see on their surface nearly as often as under the best such shift
+        (of the moved cells they see at all: on the surface or seen through); None when no
+        shift shows them MIN_VISIBLE of the cells.
+
+        The voxels count a cell as landed only on matter the target reconstructed. A drawer
+        pushed in puts its box inside the cabinet, where the closed state has none, and loses
+        to a shift onto its identical neighbour; the images see the front land and see
+        nothing where the box went."""
+        # Local peaks only: the shifts next to the best are near-copies of it.
+        peaks = (rank == maximum_filter(rank, size=3)) & (rank >= RECHECK_SHARE * rank.max())
+        flat = np.flatnonzero(peaks)
+        flat = flat[np.argsort(-rank.ravel()[flat], kind="stable")[:RECHECK_SLIDES]]
+        shifts = np.stack(np.unravel_index(flat, rank.shape), axis=1) + offset
+        centres = self.grid.centres(np.argwhere(src_mask))
+        shares = np.full(len(shifts), -1.0)
+        for i, shift in enumerate(shifts):
+            on, through = self.on_surface(centres + shift * self.grid.voxel_size,
+                                          self.surface_tolerance)
+            visible = int((on | through).sum())
+            if visible >= MIN_VISIBLE * len(centres):
+                shares[i] = on.sum() / visible
+        best = shares.max()
+        if best <= 0:
+            return None
+        return shifts[shares >= (1 - SLIDE_TOLERANCE) * best]
 
 
 def split_static_dynamic(

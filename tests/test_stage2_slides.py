@@ -1,0 +1,85 @@
+"""Stage 2's slides of drawers: a push-in judged by what the target images can see (its box goes
+where the closed state reconstructed nothing), and two drawers of one column pulled by the
+same travel kept as two parts."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gear.pipeline.stage2.parts import coarse_init
+from gear.pipeline.stage2.voxels import split_static_dynamic
+from test_coarse import FRONT, box_surface
+
+VOXEL = 0.025
+PUSH = np.array([0.0, 0.3, 0.0])  # the true motion: the drawer pushed in along +y
+DECOY = np.array([0.6, 0.0, 0.0])  # where an identical drawer stands in the target only
+
+
+def drawer(offset, rng, n=3000):
+    """An open-top drawer box (front at y = 0) moved by `offset`."""
+    return box_surface([0, 0, 0], [0.4, 0.4, 0.2], n, rng, skip=(5,)) + offset
+
+
+def push_in_scene(seed=0):
+    """Canonical: a drawer alone. Target: the same drawer pushed in by PUSH, of which only the
+    front and the bottom were reconstructed (the sides and back are inside the cabinet, hidden),
+    and an identical whole drawer at DECOY, onto which a sideways shift lands every cell."""
+    rng = np.random.default_rng(seed)
+    canon = drawer(np.zeros(3), rng)
+    pushed = drawer(PUSH, rng)
+    shown = (pushed[:, 1] <= PUSH[1] + 1e-9) | (pushed[:, 2] <= 1e-9)
+    target = np.concatenate([pushed[shown], drawer(DECOY, rng)])
+    return canon, target
+
+
+class HiddenInterior:
+    """A target SurfaceTest of push_in_scene: a point on the target's matter is seen on the
+    surface, a point inside the cabinet (behind the pushed front) is hidden, any other point is
+    seen through."""
+
+    def __init__(self, target):
+        self.target = target
+
+    def __call__(self, points, tolerance):
+        on = cKDTree(self.target).query(points)[0] < tolerance
+        inside = (points[:, 1] > PUSH[1] + tolerance) & (points[:, 0] < 0.45)
+        return on, ~on & ~inside
+
+
+def test_push_in_is_chosen_when_the_images_see_its_box_hidden():
+    canon, target = push_in_scene()
+    split = split_static_dynamic(canon, target, VOXEL)
+    mask = split.labels[0] == 1
+    assert mask.sum() > 0.9 * (split.labels[0] > 0).sum()  # the drawer is one piece
+    # The voxels alone: the decoy lands every cell, the push-in only front and bottom.
+    blind = split.best_slide(mask)
+    assert np.linalg.norm(blind - DECOY) < 1.5 * VOXEL, blind
+    split.on_surface = HiddenInterior(target)
+    split.surface_tolerance = 2 * VOXEL
+    seen = split.best_slide(mask)
+    assert np.linalg.norm(seen - PUSH) < 1.5 * VOXEL, seen
+
+
+def two_drawers_one_column(travel=0.35, n=16000, seed=3):
+    """A cabinet with a drawer above another, both pulled out by `travel` along -y."""
+    rng = np.random.default_rng(seed)
+
+    def state(pulled):
+        body = box_surface([0, 0, 0], [1, 1, 1.2], int(0.5 * n), rng, skip=(FRONT,))
+        shift = np.array([0.0, -travel if pulled else 0.0, 0.0])
+        low = box_surface([0.05, -0.02, 0.05], [0.95, 0.9, 0.5], int(0.25 * n), rng, skip=(5,))
+        high = box_surface([0.05, -0.02, 0.65], [0.95, 0.9, 1.1], int(0.25 * n), rng, skip=(5,))
+        return np.concatenate([body, low + shift, high + shift])
+
+    return state(False), state(True)
+
+
+def test_drawers_of_one_column_with_one_travel_stay_two_parts():
+    closed, pulled = two_drawers_one_column()
+    result = coarse_init(closed, pulled)
+    assert result.num_parts == 3, result.notes
+    for rot, trans in result.motions:
+        want = np.array([0.0, -0.35, 0.0]) * (1 if result.canonical == "start" else -1)
+        assert np.allclose(rot, np.eye(3), atol=1e-6)
+        assert np.linalg.norm(trans - want) < 1.5 * result.voxel_size, (trans, result.notes)
