@@ -54,3 +54,49 @@ def test_matter_moved_wholly_out_of_sight_or_nowhere_is_not_seen_to_move():
     assert seen_change(points, deep, look, TOLERANCE) == 0.0
     astray = Hypothesis("slide", np.eye(3), np.array([0.0, -0.3, 0.0]))  # into empty space
     assert seen_change(points, astray, look, TOLERANCE) < MIN_SEEN_CHANGE
+
+
+def pulled_drawer_look(pull: float):
+    """What the images of a drawer pulled out by `pull` show: its front at y = -pull over x in
+    [0.1, 0.9], z in [0.1, 0.5]; behind the front, inside the drawer, they see down through its
+    open top to z = 0.3 (seen through above, hidden below); beside the drawer, empty space."""
+
+    def look(points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        x, y, z = points.T
+        footprint = (x >= 0.1) & (x <= 0.9) & (z >= 0.1) & (z <= 0.5)
+        on = footprint & (np.abs(y + pull) < tolerance)
+        behind = footprint & (y > -pull + tolerance)
+        free = ~footprint | (y < -pull - tolerance) | (behind & (z > 0.3))
+        return on, free
+
+    return look
+
+
+def test_a_pulled_drawer_whose_old_place_is_half_hidden_is_seen_to_move():
+    """The closed front's place lies inside the pulled drawer: the images see half of it
+    through the open top, empty, and nothing of the rest. Hidden is not "still there"."""
+    rng = np.random.default_rng(2)
+    closed_front = np.column_stack([rng.uniform(0.1, 0.9, 800), np.zeros(800),
+                                    rng.uniform(0.1, 0.5, 800)])
+    pull = 0.3
+    out = Hypothesis("slide", np.eye(3), np.array([0.0, -pull, 0.0]))
+    assert seen_change(closed_front, out, pulled_drawer_look(pull), TOLERANCE) >= 0.95
+
+
+def test_matter_mostly_hidden_where_it_was_is_not_seen_to_move():
+    """Where the images see under half of a component's old place, only what they see empty
+    counts, over the whole: an interior that one state reveals and the other hides behind its
+    closed door scores low even when its motion lands it on matter."""
+    rng = np.random.default_rng(3)
+    interior = np.column_stack([rng.uniform(0.1, 0.9, 800), rng.uniform(0.2, 0.8, 800),
+                                rng.uniform(0.1, 0.5, 800)])
+
+    def closed_door(points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        # Matter far in front (y < -1); the interior hidden behind the door but for a gap
+        # along x > 0.75, seen empty.
+        on = points[:, 1] < -1.0
+        free = (points[:, 1] >= 0.0) & (points[:, 0] > 0.75)
+        return on, free
+
+    onto_matter = Hypothesis("slide", np.eye(3), np.array([0.0, -2.0, 0.0]))
+    assert seen_change(interior, onto_matter, closed_door, TOLERANCE) < 0.3

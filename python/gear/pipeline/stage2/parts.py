@@ -42,6 +42,7 @@ MIN_PART_EXTENT = 0.15
 # "K from the data").
 MIN_SEEN_CHANGE = 0.6
 SURFACE_TOLERANCE_VOXELS = 2.0
+MIN_SEEN_THERE = 0.5
 # A piece whose best motion leaves at least this fraction of its cells off target matter is
 # split: the rest gets a motion of its own (_split_by_motion).
 SPLIT_FRACTION = 0.2
@@ -181,9 +182,12 @@ def seen_change(
     moved = points @ np.asarray(motion.rot).T + np.asarray(motion.trans)
     landed, in_front = on_surface(moved, tolerance)
     visible = landed | in_front
-    _, vacated = on_surface(points, tolerance)
+    stayed, vacated = on_surface(points, tolerance)
     landed_share = landed.sum() / visible.sum() if visible.any() else 0.0
-    return float(min(landed_share, vacated.mean()))
+    seen_there = stayed | vacated
+    vacated_share = (vacated.sum() / seen_there.sum() if seen_there.mean() >= MIN_SEEN_THERE
+                     else vacated.mean())
+    return float(min(landed_share, vacated_share))
 
 
 def _split_by_motion(split: VoxelSplit, mask: np.ndarray, motion: Hypothesis) -> list[np.ndarray]:
