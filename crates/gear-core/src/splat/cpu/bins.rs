@@ -1,9 +1,10 @@
-//! Stage 1 and the binning of the CPU executor: project every Gaussian (in parallel), sort the
-//! survivors by depth (ties by index, as the GPU's stable radix sort and the reference do), and
-//! build each tile's depth-ordered list of the Gaussians whose 1/255 ellipse spans a pixel
-//! centre of one of its rows, with the mask of those rows. A counting sort by tile over the
-//! (tile, Gaussian) pairs in depth order keeps every list in depth order and records where each
-//! pair landed, so the backward can reduce each Gaussian's per-pair gradients in a fixed order.
+//! Stage 1 and the binning of the CPU executor: project every Gaussian (in parallel) and
+//! build each tile's list of the Gaussians whose 1/255 ellipse spans a pixel centre of one of
+//! its rows, with the mask of those rows, in depth order (ties by index, as the GPU's stable
+//! radix sort and the reference order them). The pairs are scattered to their tiles in
+//! Gaussian order (a counting sort by tile, whose reads all stream) and each tile's list is
+//! then sorted by depth, in parallel over the tiles. Each entry records its pair number, so
+//! the backward can reduce each Gaussian's per-pair gradients in a fixed order.
 
 // Lane loops index several [f32; 8] arrays in step: the form the compiler vectorises.
 #![allow(clippy::needless_range_loop)]
