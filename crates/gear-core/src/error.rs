@@ -16,3 +16,14 @@ pub enum GearError {
 }
 
 pub type Result<T> = std::result::Result<T, GearError>;
+
+/// An error naming the first non-finite value of `values` (`what`: the array, for the
+/// message); a non-finite input is a bug upstream, reported rather than spread as NaNs.
+pub(crate) fn check_finite<T: Copy + Into<f64>>(what: &str, values: &[T]) -> Result<()> {
+    match values.iter().position(|&v| !v.into().is_finite()) {
+        None => Ok(()),
+        Some(i) => Err(GearError::InvalidInput(format!(
+            "{what} has a non-finite value at flat index {i}"
+        ))),
+    }
+}

@@ -6,6 +6,7 @@
 //! - [`splat`]: the differentiable Gaussian rasterizer (WGSL kernels) and its f64 CPU reference.
 //! - [`voxel`]: shared voxel grids, dilation and connected components.
 //! - [`knn`]: k nearest neighbours in 3D.
+//! - [`motion`]: Gaussians moved by a soft blend of rigid part motions, and its backward.
 //! - [`sh`]: view-dependent colour from spherical harmonics (degree 0..=3), its own op.
 //!
 //! Nothing here knows about Python or torch; arrays come in and go out as slices.
@@ -13,6 +14,7 @@
 pub mod error;
 pub mod gpu;
 pub mod knn;
+pub mod motion;
 pub mod reduce;
 pub mod sh;
 pub mod splat;

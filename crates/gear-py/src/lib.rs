@@ -4,6 +4,7 @@
 mod args;
 mod errors;
 mod geometry;
+mod motion;
 mod sh;
 mod splat;
 
@@ -52,5 +53,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     splat::register(m)?;
     geometry::register(m)?;
     sh::register(m)?;
+    motion::register(m)?;
     Ok(())
 }

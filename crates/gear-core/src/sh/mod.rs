@@ -21,7 +21,7 @@ pub mod reference;
 #[cfg(test)]
 mod tests;
 
-use crate::error::{GearError, Result};
+use crate::error::{check_finite, GearError, Result};
 
 /// Highest supported degree; (degree + 1)^2 coefficients per colour channel.
 pub const MAX_DEGREE: u32 = 3;
@@ -87,8 +87,8 @@ impl<'a, T: Copy + Into<f64>> ShInput<'a, T> {
                 self.coeffs.len()
             )));
         }
-        check_finite("dirs", self.dirs)?;
-        check_finite("coeffs", self.coeffs)
+        check_finite("sh dirs", self.dirs)?;
+        check_finite("sh coeffs", self.coeffs)
     }
 
     /// Checks `grad_rgb` [N, 3] against these inputs.
@@ -100,19 +100,10 @@ impl<'a, T: Copy + Into<f64>> ShInput<'a, T> {
                 grad_rgb.len()
             )));
         }
-        check_finite("grad_rgb", grad_rgb)
+        check_finite("sh grad_rgb", grad_rgb)
     }
 }
 
 fn invalid(message: String) -> GearError {
     GearError::InvalidInput(message)
-}
-
-fn check_finite<T: Copy + Into<f64>>(name: &str, values: &[T]) -> Result<()> {
-    match values.iter().position(|&v| !v.into().is_finite()) {
-        None => Ok(()),
-        Some(i) => Err(invalid(format!(
-            "sh {name} has a non-finite value at flat index {i}"
-        ))),
-    }
 }

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-from gear.kinematics import deform
+from gear.fused_deform import fused_deform
 from gear.losses import (
     depth_log_l1,
     knn_consistency_loss,
@@ -33,7 +33,7 @@ def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
     logits = g["logits"]
     weights = torch.softmax(logits, dim=1)
     index, view, bg = state.target_view()
-    means_d, quats_d = deform(g["means"], g["quats"], weights, qr, qd)
+    means_d, quats_d = fused_deform(g["means"], g["quats"], weights, qr, qd)
     means_d.retain_grad()
     # Shared by both renders; with spherical harmonics the colours depend on the camera and
     # the pose, so each render computes its own.

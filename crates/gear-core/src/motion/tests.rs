@@ -1,0 +1,347 @@
+//! The op against central finite differences of itself in f64, f32 against f64, hard cases
+//! (a vanishing mix, opposite quaternion signs, half turns) and the chunked driver against one
+//! Gaussian at a time.
+
+use super::blend::{backward_one, forward_one, GradientsOne, Motions};
+use super::*;
+
+/// A named input array of a scene, for the finite-difference loop.
+type Field = fn(&mut Scene) -> &mut Vec<f64>;
+
+struct Scene {
+    means: Vec<f64>,
+    quats: Vec<f64>,
+    weights: Vec<f64>,
+    qr: Vec<f64>,
+    qd: Vec<f64>,
+}
+
+impl Scene {
+    fn input(&self) -> DeformInput<'_, f64> {
+        DeformInput {
+            means: &self.means,
+            quats: &self.quats,
+            weights: &self.weights,
+            qr: &self.qr,
+            qd: &self.qd,
+        }
+    }
+}
+
+fn uniform(rng: &mut fastrand::Rng, n: usize, lo: f64, hi: f64) -> Vec<f64> {
+    (0..n).map(|_| lo + (hi - lo) * rng.f64()).collect()
+}
+
+/// Unit dual quaternions of random motions; every other one has its sign flipped (the same
+/// motion), so that the blend must align signs.
+fn random_motions(rng: &mut fastrand::Rng, k: usize) -> (Vec<f64>, Vec<f64>) {
+    let (mut qr, mut qd) = (vec![], vec![]);
+    for p in 0..k {
+        let r = uniform(rng, 4, -1.0, 1.0);
+        let n = r.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let sign = if p % 2 == 1 { -1.0 } else { 1.0 };
+        let r: [f64; 4] = std::array::from_fn(|i| sign * r[i] / n);
+        let t = uniform(rng, 3, -0.5, 0.5);
+        let d = quat::mul(&[0.0, t[0], t[1], t[2]], &r);
+        qr.extend_from_slice(&r);
+        qd.extend(d.iter().map(|v| 0.5 * v));
+    }
+    (qr, qd)
+}
+
+fn random_scene(seed: u64, n: usize, k: usize) -> Scene {
+    let mut rng = fastrand::Rng::with_seed(seed);
+    let (qr, qd) = random_motions(&mut rng, k);
+    Scene {
+        means: uniform(&mut rng, 3 * n, -1.0, 1.0),
+        quats: uniform(&mut rng, 4 * n, -1.0, 1.0),
+        weights: uniform(&mut rng, k * n, 0.0, 1.0),
+        qr,
+        qd,
+    }
+}
+
+/// sum(out · probe) for fixed random probes: the scalar whose gradient is checked.
+fn loss(scene: &Scene, probe_m: &[f64], probe_q: &[f64]) -> f64 {
+    let out = forward(&scene.input()).unwrap();
+    quat::dot_slices(&out.means, probe_m) + quat::dot_slices(&out.quats, probe_q)
+}
+
+#[test]
+fn gradients_match_finite_differences() {
+    for (seed, k) in [(1, 1), (2, 2), (3, 3), (4, 5)] {
+        let mut scene = random_scene(seed, 6, k);
+        let mut rng = fastrand::Rng::with_seed(100 + seed);
+        let probe_m = uniform(&mut rng, scene.means.len(), -1.0, 1.0);
+        let probe_q = uniform(&mut rng, scene.quats.len(), -1.0, 1.0);
+        let g = backward(&scene.input(), &probe_m, &probe_q, true).unwrap();
+        let h = 1e-6;
+        let fields: [(&str, Field, &Vec<f64>); 5] = [
+            ("means", |s| &mut s.means, &g.means),
+            ("quats", |s| &mut s.quats, &g.quats),
+            ("weights", |s| &mut s.weights, &g.weights),
+            ("qr", |s| &mut s.qr, &g.qr),
+            ("qd", |s| &mut s.qd, &g.qd),
+        ];
+        for (name, field, analytic) in fields {
+            assert_eq!(analytic.len(), field(&mut scene).len(), "{name}");
+            for (i, &grad) in analytic.iter().enumerate() {
+                let v = field(&mut scene)[i];
+                field(&mut scene)[i] = v + h;
+                let up = loss(&scene, &probe_m, &probe_q);
+                field(&mut scene)[i] = v - h;
+                let down = loss(&scene, &probe_m, &probe_q);
+                field(&mut scene)[i] = v;
+                let numeric = (up - down) / (2.0 * h);
+                assert!(
+                    (numeric - grad).abs() <= 1e-6 * (1.0 + numeric.abs()),
+                    "seed {seed}, K {k}, {name}[{i}]: analytic {grad} vs numeric {numeric}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn pure_motions_move_rigidly() {
+    // One-hot weights: the Gaussian moves exactly by its part's motion, whatever the signs.
+    let mut scene = random_scene(7, 4, 3);
+    for (i, w) in scene.weights.chunks_exact_mut(3).enumerate() {
+        w.fill(0.0);
+        w[i % 3] = 1.0;
+    }
+    let out = forward(&scene.input()).unwrap();
+    for i in 0..4 {
+        let p = i % 3;
+        let r: [f64; 4] = std::array::from_fn(|j| scene.qr[4 * p + j]);
+        let d: [f64; 4] = std::array::from_fn(|j| scene.qd[4 * p + j]);
+        let t = quat::mul(&d, &quat::conj(&r));
+        let m = [
+            scene.means[3 * i],
+            scene.means[3 * i + 1],
+            scene.means[3 * i + 2],
+        ];
+        let rotated = quat::rotate(&r, &m);
+        for j in 0..3 {
+            let want = rotated[j] + 2.0 * t[j + 1];
+            assert!((out.means[3 * i + j] - want).abs() < 1e-12, "mean {i},{j}");
+        }
+    }
+}
+
+#[test]
+fn float32_agrees_with_float64() {
+    let scene = random_scene(11, 500, 4);
+    let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+    let (m, q, w, r, d) = (
+        f32s(&scene.means),
+        f32s(&scene.quats),
+        f32s(&scene.weights),
+        f32s(&scene.qr),
+        f32s(&scene.qd),
+    );
+    let input32 = DeformInput {
+        means: &m,
+        quats: &q,
+        weights: &w,
+        qr: &r,
+        qd: &d,
+    };
+    // The f32 op on the rounded inputs against f64 on the same rounded inputs.
+    let back = |v: &[f32]| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
+    let rounded = Scene {
+        means: back(&m),
+        quats: back(&q),
+        weights: back(&w),
+        qr: back(&r),
+        qd: back(&d),
+    };
+    let out32 = forward(&input32).unwrap();
+    let out64 = forward(&rounded.input()).unwrap();
+    for (a, b) in out32.means.iter().zip(&out64.means) {
+        assert!((*a as f64 - b).abs() < 2e-6, "mean {a} vs {b}");
+    }
+    for (a, b) in out32.quats.iter().zip(&out64.quats) {
+        assert!((*a as f64 - b).abs() < 2e-6, "quat {a} vs {b}");
+    }
+    let gm = vec![0.5f32; m.len()];
+    let gq = vec![-0.25f32; q.len()];
+    let g32 = backward(&input32, &gm, &gq, true).unwrap();
+    let g64 = backward(&rounded.input(), &back(&gm), &back(&gq), true).unwrap();
+    for (name, a, b) in [
+        ("means", &g32.means, &g64.means),
+        ("quats", &g32.quats, &g64.quats),
+        ("weights", &g32.weights, &g64.weights),
+        ("qr", &g32.qr, &g64.qr),
+        ("qd", &g32.qd, &g64.qd),
+    ] {
+        let err = a
+            .iter()
+            .zip(b)
+            .map(|(&x, y)| (x as f64 - y).powi(2))
+            .sum::<f64>();
+        let norm = b.iter().map(|y| y * y).sum::<f64>();
+        assert!(
+            err.sqrt() <= 1e-5 * norm.sqrt().max(1e-12),
+            "{name}: relative L2 error"
+        );
+    }
+}
+
+#[test]
+fn hard_cases_stay_finite() {
+    // All weights zero (the mix vanishes: identity rotation), weights of ±50, half turns whose
+    // quaternions have w = 0, and opposite signs of one motion in the same blend.
+    let half_turn = [0.0, 0.0, 0.0, 1.0];
+    let cases: Vec<(Vec<f64>, Vec<f64>, Vec<f64>)> = vec![
+        (
+            vec![0.0, 0.0],
+            [[1.0, 0.0, 0.0, 0.0], half_turn].concat(),
+            vec![0.0; 8],
+        ),
+        (
+            vec![50.0, -50.0],
+            [half_turn, half_turn].concat(),
+            vec![0.1; 8],
+        ),
+        (
+            vec![0.5, 0.5],
+            [[0.6, 0.8, 0.0, 0.0], [-0.6, -0.8, 0.0, 0.0]].concat(),
+            vec![0.0, 0.3, 0.0, 0.0, 0.0, -0.3, 0.0, 0.0],
+        ),
+        (
+            vec![0.5, 0.5],
+            [half_turn, [0.0, 0.0, 0.0, -1.0]].concat(),
+            vec![0.0; 8],
+        ),
+    ];
+    for (c, (weights, qr, qd)) in cases.into_iter().enumerate() {
+        let scene = Scene {
+            means: vec![0.3, -0.2, 0.1],
+            quats: vec![0.0, 0.0, 0.0, 0.0],
+            weights,
+            qr,
+            qd,
+        };
+        let out = forward(&scene.input()).unwrap();
+        let g = backward(
+            &scene.input(),
+            &[1.0, -1.0, 0.5],
+            &[0.2, 0.1, -0.3, 0.4],
+            true,
+        )
+        .unwrap();
+        let all = [
+            &out.means, &out.quats, &g.means, &g.quats, &g.weights, &g.qr, &g.qd,
+        ];
+        for values in all {
+            assert!(values.iter().all(|v| v.is_finite()), "case {c}: {values:?}");
+        }
+        if c == 0 {
+            // The vanished mix is the identity rotation: the mean is not turned.
+            assert_eq!(&out.means[..], &scene.means[..], "case 0");
+        }
+    }
+}
+
+#[test]
+fn chunks_match_one_gaussian_at_a_time() {
+    // Over several chunks, each Gaussian's outputs and gradients are its own pass's, and the
+    // motions' gradients the chunks' sums added in chunk order.
+    let k = 3;
+    let n = 2 * CHUNK + 17;
+    let mut scene = random_scene(21, n, k);
+    scene.weights.iter_mut().for_each(|w| *w = w.powi(4));
+    let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+    let (m, q, w, r, d) = (
+        f32s(&scene.means),
+        f32s(&scene.quats),
+        f32s(&scene.weights),
+        f32s(&scene.qr),
+        f32s(&scene.qd),
+    );
+    let input = DeformInput {
+        means: &m,
+        quats: &q,
+        weights: &w,
+        qr: &r,
+        qd: &d,
+    };
+    let gm: Vec<f32> = (0..m.len()).map(|i| (i % 7) as f32 - 3.0).collect();
+    let gq: Vec<f32> = (0..q.len()).map(|i| (i % 5) as f32 * 0.1).collect();
+    let out = forward(&input).unwrap();
+    let g = backward(&input, &gm, &gq, true).unwrap();
+    let (qr, qd) = input.motions();
+    let motions = Motions { qr: &qr, qd: &qd };
+    let mut total = vec![[0.0f32; 4]; 2 * k];
+    for start in (0..n).step_by(CHUNK) {
+        let mut chunk = vec![[0.0f32; 4]; 2 * k];
+        for i in start..(start + CHUNK).min(n) {
+            let (mi, qi) = forward_one(
+                &vec3(&m[3 * i..]),
+                &quat4(&q[4 * i..]),
+                &w[k * i..k * (i + 1)],
+                &motions,
+            );
+            assert_eq!(&out.means[3 * i..3 * i + 3], &mi[..], "mean {i}");
+            assert_eq!(&out.quats[4 * i..4 * i + 4], &qi[..], "quat {i}");
+            let (mut a, mut b, mut c) = ([0.0f32; 3], [0.0f32; 4], vec![0.0f32; k]);
+            backward_one(
+                &vec3(&m[3 * i..]),
+                &quat4(&q[4 * i..]),
+                &w[k * i..k * (i + 1)],
+                &motions,
+                &vec3(&gm[3 * i..]),
+                &quat4(&gq[4 * i..]),
+                GradientsOne {
+                    mean: &mut a,
+                    quat: &mut b,
+                    weights: &mut c,
+                    motions: Some(&mut chunk),
+                },
+            );
+            assert_eq!(&g.means[3 * i..3 * i + 3], &a[..], "grad mean {i}");
+            assert_eq!(&g.quats[4 * i..4 * i + 4], &b[..], "grad quat {i}");
+            assert_eq!(&g.weights[k * i..k * (i + 1)], &c[..], "grad weights {i}");
+        }
+        for (t, c) in total.iter_mut().zip(&chunk) {
+            *t = std::array::from_fn(|j| t[j] + c[j]);
+        }
+    }
+    let flat: Vec<f32> = total.iter().flatten().copied().collect();
+    assert_eq!(&g.qr[..], &flat[..4 * k]);
+    assert_eq!(&g.qd[..], &flat[4 * k..]);
+    // Held motions: the same gradients for the Gaussians, none for the motions.
+    let held = backward(&input, &gm, &gq, false).unwrap();
+    assert_eq!((&held.means, &held.weights), (&g.means, &g.weights));
+    assert!(held.qr.is_empty() && held.qd.is_empty());
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let scene = random_scene(5, 3, 2);
+    let mut input = scene.input();
+    input.weights = &scene.weights[..5];
+    assert!(forward(&input)
+        .unwrap_err()
+        .to_string()
+        .contains("weights must hold 6"));
+    let nan = [f64::NAN, 0.0, 0.0];
+    let mut means = scene.means.clone();
+    means[..3].copy_from_slice(&nan);
+    let input = DeformInput {
+        means: &means,
+        ..scene.input()
+    };
+    let err = forward(&input).unwrap_err().to_string();
+    assert!(
+        err.contains("deform means has a non-finite value at flat index 0"),
+        "{err}"
+    );
+    let empty = DeformInput {
+        qr: &[],
+        qd: &[],
+        ..scene.input()
+    };
+    assert!(forward(&empty).unwrap_err().to_string().contains("K >= 1"));
+}
