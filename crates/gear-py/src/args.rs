@@ -44,6 +44,11 @@ impl Dtype for bool {
     const NAME: &'static str = "bool";
 }
 
+/// Whether `obj` is an array of the element type `T` (by its dtype's name).
+pub fn has_dtype<T: Dtype>(obj: &Bound<'_, PyAny>) -> bool {
+    obj.getattr("dtype").is_ok_and(|d| d.to_string() == T::NAME)
+}
+
 /// A read-only view of `obj` as a C-contiguous numpy array of `T` with the expected `shape`,
 /// or an error naming the argument `name`.
 pub fn array<'py, T: Dtype>(

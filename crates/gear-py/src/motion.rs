@@ -5,7 +5,7 @@ use gear_core::motion::{self, DeformInput, Real};
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
-use crate::args::{array, Dim, Dtype};
+use crate::args::{array, has_dtype, Dim, Dtype};
 use crate::errors::guarded;
 
 type Array<'py> = Bound<'py, PyAny>;
@@ -49,12 +49,6 @@ impl<'py, T: Dtype + Real> Args<'py, T> {
 fn rows<'py, T: Dtype>(py: Python<'py>, v: Vec<T>, width: usize) -> PyResult<Array<'py>> {
     let n = v.len() / width.max(1);
     Ok(PyArray1::from_vec(py, v).reshape([n, width])?.into_any())
-}
-
-fn is_float64(means: &Array<'_>) -> bool {
-    means
-        .getattr("dtype")
-        .is_ok_and(|d| d.to_string() == "float64")
 }
 
 fn forward<'py, T: Dtype + Real>(
@@ -114,7 +108,7 @@ fn deform<'py>(
     qd: &Array<'py>,
 ) -> PyResult<(Array<'py>, Array<'py>)> {
     let arrays = [means, quats, weights, qr, qd];
-    if is_float64(means) {
+    if has_dtype::<f64>(means) {
         forward::<f64>(py, arrays)
     } else {
         forward::<f32>(py, arrays)
@@ -138,7 +132,7 @@ fn deform_backward<'py>(
     motion_grads: bool,
 ) -> PyResult<Gradients<'py>> {
     let arrays = [means, quats, weights, qr, qd];
-    if is_float64(means) {
+    if has_dtype::<f64>(means) {
         backward::<f64>(py, arrays, grad_means, grad_quats, motion_grads)
     } else {
         backward::<f32>(py, arrays, grad_means, grad_quats, motion_grads)

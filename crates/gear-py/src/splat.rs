@@ -13,7 +13,7 @@ use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::args::{array, Dim, Dtype};
+use crate::args::{array, has_dtype, Dim, Dtype};
 use crate::errors::guarded;
 
 /// Owned inputs of a reference forward pass, replayed by its backward.
@@ -464,9 +464,7 @@ fn reference_backward<'py>(
     let StateKind::Reference(inputs) = &state.kind else {
         return Err(wrong_state("reference_forward"));
     };
-    let is_f32 = grad_features
-        .getattr("dtype")
-        .is_ok_and(|d| d.to_string() == "float32");
+    let is_f32 = has_dtype::<f32>(grad_features);
     // Keeps whichever form the gradients arrived in alive while `view` borrows it.
     let widened: [Vec<f64>; 3];
     let as_f64;

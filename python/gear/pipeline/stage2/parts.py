@@ -136,6 +136,21 @@ def _moves_along(
     return bool(np.median(apart) <= AGREE_VOXELS * split.grid.voxel_size)
 
 
+def _joins(split: VoxelSplit, pieces: np.ndarray, part: _Part, cells: np.ndarray,
+           points: np.ndarray, hyps: list[Hypothesis], is_region: bool) -> bool:
+    """Whether a piece (`cells`, `points`, its own readings `hyps`) moves with `part` under one
+    of the part's readings, in line with the part's cells (computed once, when needed)."""
+    part_cells = None
+    for h in part.hypotheses:
+        if not _moves_along(split, cells, points, h, hyps, is_region):
+            continue
+        if part_cells is None:
+            part_cells = np.argwhere(np.isin(pieces, part.components))
+        if _in_line(cells, part_cells, h):
+            return True
+    return False
+
+
 def _in_line(cells: np.ndarray, part_cells: np.ndarray, motion: Hypothesis) -> bool:
     """Whether a piece's `cells` lie in line with a part's `part_cells` along the part's
     `motion` when it is a slide: at least IN_LINE_SHARE of the piece's cells fall, seen along
@@ -320,10 +335,8 @@ def find_parts(
         cells = np.argwhere(mask)
         # Any reading of a part counts: a safe door's dial, a component of its own, moves
         # with the door only under the half turn that may not be the door's first reading.
-        owner = next((p for p in parts
-                      if any(_moves_along(split, cells, points, h, hyps, comp in regions_of)
-                             and _in_line(cells, np.argwhere(np.isin(pieces, p.components)), h)
-                             for h in p.hypotheses)), None)
+        owner = next((p for p in parts if _joins(split, pieces, p, cells, points, hyps,
+                                                  comp in regions_of)), None)
         if owner is not None:
             owner.components.append(comp)
             continue
