@@ -8,22 +8,34 @@ use super::*;
 /// A named input array of a scene, for the finite-difference loop.
 type Field = fn(&mut Scene) -> &mut Vec<f64>;
 
-struct Scene {
-    means: Vec<f64>,
-    quats: Vec<f64>,
-    weights: Vec<f64>,
-    qr: Vec<f64>,
-    qd: Vec<f64>,
+struct Scene<T = f64> {
+    means: Vec<T>,
+    quats: Vec<T>,
+    weights: Vec<T>,
+    qr: Vec<T>,
+    qd: Vec<T>,
 }
 
-impl Scene {
-    fn input(&self) -> DeformInput<'_, f64> {
+impl<T: Copy> Scene<T> {
+    fn input(&self) -> DeformInput<'_, T> {
         DeformInput {
             means: &self.means,
             quats: &self.quats,
             weights: &self.weights,
             qr: &self.qr,
             qd: &self.qd,
+        }
+    }
+
+    /// Every value converted by `f`.
+    fn map<U>(&self, f: impl Fn(T) -> U) -> Scene<U> {
+        let all = |v: &[T]| v.iter().map(|&x| f(x)).collect();
+        Scene {
+            means: all(&self.means),
+            quats: all(&self.quats),
+            weights: all(&self.weights),
+            qr: all(&self.qr),
+            qd: all(&self.qd),
         }
     }
 }
@@ -131,31 +143,11 @@ fn pure_motions_move_rigidly() {
 
 #[test]
 fn float32_agrees_with_float64() {
-    let scene = random_scene(11, 500, 4);
-    let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
-    let (m, q, w, r, d) = (
-        f32s(&scene.means),
-        f32s(&scene.quats),
-        f32s(&scene.weights),
-        f32s(&scene.qr),
-        f32s(&scene.qd),
-    );
-    let input32 = DeformInput {
-        means: &m,
-        quats: &q,
-        weights: &w,
-        qr: &r,
-        qd: &d,
-    };
-    // The f32 op on the rounded inputs against f64 on the same rounded inputs.
-    let back = |v: &[f32]| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
-    let rounded = Scene {
-        means: back(&m),
-        quats: back(&q),
-        weights: back(&w),
-        qr: back(&r),
-        qd: back(&d),
-    };
+    // The f32 op on rounded inputs against f64 on the same rounded inputs.
+    let scene32 = random_scene(11, 500, 4).map(|x| x as f32);
+    let rounded = scene32.map(f64::from);
+    let input32 = scene32.input();
+    let back = |v: &[f32]| v.iter().map(|&x| f64::from(x)).collect::<Vec<f64>>();
     let out32 = forward(&input32).unwrap();
     let out64 = forward(&rounded.input()).unwrap();
     for (a, b) in out32.means.iter().zip(&out64.means) {
@@ -164,8 +156,8 @@ fn float32_agrees_with_float64() {
     for (a, b) in out32.quats.iter().zip(&out64.quats) {
         assert!((*a as f64 - b).abs() < 2e-6, "quat {a} vs {b}");
     }
-    let gm = vec![0.5f32; m.len()];
-    let gq = vec![-0.25f32; q.len()];
+    let gm = vec![0.5f32; scene32.means.len()];
+    let gq = vec![-0.25f32; scene32.quats.len()];
     let g32 = backward(&input32, &gm, &gq, true).unwrap();
     let g64 = backward(&rounded.input(), &back(&gm), &back(&gq), true).unwrap();
     for (name, a, b) in [
@@ -252,21 +244,9 @@ fn chunks_match_one_gaussian_at_a_time() {
     let n = 2 * CHUNK + 17;
     let mut scene = random_scene(21, n, k);
     scene.weights.iter_mut().for_each(|w| *w = w.powi(4));
-    let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
-    let (m, q, w, r, d) = (
-        f32s(&scene.means),
-        f32s(&scene.quats),
-        f32s(&scene.weights),
-        f32s(&scene.qr),
-        f32s(&scene.qd),
-    );
-    let input = DeformInput {
-        means: &m,
-        quats: &q,
-        weights: &w,
-        qr: &r,
-        qd: &d,
-    };
+    let scene32 = scene.map(|x| x as f32);
+    let input = scene32.input();
+    let (m, q, w) = (input.means, input.quats, input.weights);
     let gm: Vec<f32> = (0..m.len()).map(|i| (i % 7) as f32 - 3.0).collect();
     let gq: Vec<f32> = (0..q.len()).map(|i| (i % 5) as f32 * 0.1).collect();
     let out = forward(&input).unwrap();
