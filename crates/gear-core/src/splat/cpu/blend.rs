@@ -15,11 +15,15 @@ use super::lanes::{
 use super::TILE;
 use crate::splat::constants::MIN_TRANSMITTANCE;
 
-/// Per pixel what the backward replays: final transmittance and the end of the consumed list
-/// prefix (an index into the tile lists).
+/// What the backward replays: per pixel the final transmittance and the end of the consumed
+/// list prefix (an index into the tile lists); per list entry the rows of its tile where it
+/// was blended into a pixel (bit r for row r). The backward visits only those rows: on any
+/// other, every pixel either failed the entry's guards or had stopped blending, so its replay
+/// would add nothing.
 pub(super) struct PixelState {
     pub final_t: Vec<f32>,
     pub consumed: Vec<u32>,
+    pub blended_rows: Vec<u8>,
 }
 
 /// Work counters of a forward blend.
@@ -77,6 +81,10 @@ struct BandImages<'a> {
     depth: &'a mut [f32],
     final_t: &'a mut [f32],
     consumed: &'a mut [u32],
+    /// The band's list entries' blended rows (its tiles' lists are contiguous), the first of
+    /// them entry `first_entry`.
+    blended_rows: &'a mut [u8],
+    first_entry: usize,
 }
 
 /// Inputs of the blend that every band shares.
@@ -101,26 +109,51 @@ pub(super) fn blend(scene: &Scene) -> (Vec<f32>, Vec<f32>, Vec<f32>, PixelState,
     let mut depth = vec![f32::NAN; pixels];
     let mut final_t = vec![f32::NAN; pixels];
     let mut consumed = vec![0u32; pixels];
+    let mut blended_rows = vec![0u8; scene.bins.pairs()];
+    let band_rows = band_slices(scene.bins, &mut blended_rows);
     let counts = features
         .par_chunks_mut(band * c)
         .zip(alpha.par_chunks_mut(band))
         .zip(depth.par_chunks_mut(band))
         .zip(final_t.par_chunks_mut(band))
         .zip(consumed.par_chunks_mut(band))
+        .zip(band_rows)
         .enumerate()
-        .map(|(b, ((((features, alpha), depth), final_t), consumed))| {
-            let images = BandImages {
-                features,
-                alpha,
-                depth,
-                final_t,
-                consumed,
-            };
-            blend_band(scene, b as u32, images)
-        })
+        .map(
+            |(b, (((((features, alpha), depth), final_t), consumed), blended_rows))| {
+                let images = BandImages {
+                    features,
+                    alpha,
+                    depth,
+                    final_t,
+                    consumed,
+                    blended_rows,
+                    first_entry: scene.bins.range(b * scene.bins.tiles_x as usize).start,
+                };
+                blend_band(scene, b as u32, images)
+            },
+        )
         .reduce(BlendCounts::default, BlendCounts::add);
-    let state = PixelState { final_t, consumed };
+    let state = PixelState {
+        final_t,
+        consumed,
+        blended_rows,
+    };
     (features, alpha, depth, state, counts)
+}
+
+/// `per_entry` split into the entries of each band of tiles (a band's lists are contiguous).
+fn band_slices<'a>(bins: &Bins, per_entry: &'a mut [u8]) -> Vec<&'a mut [u8]> {
+    let mut rest = per_entry;
+    let mut slices = Vec::with_capacity(bins.tiles_y as usize);
+    for band in 0..bins.tiles_y as usize {
+        let tiles = band * bins.tiles_x as usize..(band + 1) * bins.tiles_x as usize;
+        let len = bins.range(tiles.end - 1).end - bins.range(tiles.start).start;
+        let (head, tail) = std::mem::take(&mut rest).split_at_mut(len);
+        slices.push(head);
+        rest = tail;
+    }
+    slices
 }
 
 with_avx2!(
@@ -175,6 +208,7 @@ fn blend_tile<const C: usize>(
     let start = range.start as u32;
     let entries = &scene.bins.entries[range.clone()];
     let features = &scene.bins.entry_features[range.start * channels..range.end * channels];
+    let rows_blended = &mut out.blended_rows[range.start - out.first_entry..][..range.len()];
     let mut state: [RowState; TILE as usize] = array(|r| RowState {
         t: [1.0; LANES],
         depth: [0.0; LANES],
@@ -203,6 +237,7 @@ fn blend_tile<const C: usize>(
             evaluations += row.len as u64;
             let e = evaluate(s, &row.xs, row.cy - s.v);
             let mut w = [0.0f32; LANES];
+            let mut blended: Mask = [0; LANES];
             for i in 0..LANES {
                 let next = st.t[i] * (1.0 - e.alpha[i]);
                 let hit = st.open[i] & e.passes[i];
@@ -210,12 +245,16 @@ fn blend_tile<const C: usize>(
                 let blend = hit & !stop;
                 st.open[i] &= !stop;
                 st.blended[i] += blend & 1;
+                blended[i] = blend;
                 w[i] = masked(e.alpha[i] * st.t[i], blend);
                 st.t[i] = select(blend, next, st.t[i]);
                 st.consumed[i] = (next_consumed & blend) | (st.consumed[i] & !blend);
             }
             if st.open.iter().all(|&o| o == 0) {
                 live &= !(1 << r);
+            }
+            if blended.iter().any(|&b| b != 0) {
+                rows_blended[j] |= 1 << r;
             }
             for (a, &fc) in acc[r * channels..(r + 1) * channels].iter_mut().zip(f) {
                 for i in 0..LANES {

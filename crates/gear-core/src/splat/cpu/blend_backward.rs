@@ -195,8 +195,8 @@ fn load_row(
 }
 
 /// Replays a tile's list (entries `range`) back to front for all its rows at once (from the
-/// longest consumed prefix; an entry visits only the rows its ellipse spans and that consumed
-/// it), adding each row's contributions to the entry's record, rows in increasing order. `C`
+/// longest consumed prefix; an entry visits only the rows where the forward blended it and
+/// that hold it in their prefix), adding each row's contributions to the entry's record, rows in increasing order. `C`
 /// is the channel count if it is a compile-time constant ([`with_channels!`]).
 #[inline(always)]
 fn replay_tile<const C: usize>(
@@ -240,7 +240,7 @@ fn replay_tile<const C: usize>(
             holding |= 1 << by_end[held];
             held += 1;
         }
-        let mut visit = s.rows & holding;
+        let mut visit = u32::from(replay.state.blended_rows[k as usize]) & holding;
         while visit != 0 {
             let r = visit.trailing_zeros() as usize;
             visit &= visit - 1;

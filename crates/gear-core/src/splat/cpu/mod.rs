@@ -109,7 +109,8 @@ pub fn forward_in(
             depth: options.depth,
         };
         let (features, alpha, depth, pixels, counts) = blend(&scene);
-        let state_bytes = (bins.bytes() + 8 * pixels.final_t.len()) as u64;
+        let state_bytes =
+            (bins.bytes() + 8 * pixels.final_t.len() + pixels.blended_rows.len()) as u64;
         let stats = RasterStats {
             pairs: bins.pairs() as u64,
             evaluations: counts.evaluations,

@@ -307,3 +307,33 @@ fn row_test_skips_most_evaluations() {
     assert!(s.contributions > 0 && s.contributions <= s.evaluations);
     assert!(s.evaluations * 2 < s.pairs * 64, "{s:?}");
 }
+
+/// The backward skips the rows where the forward blended an entry into no pixel: the same
+/// gradients, bit for bit, as replaying every row the entry's ellipse spans. Also checks that
+/// the skip skips something on a scene of sub-pixel splats (else it would test nothing).
+#[test]
+fn skipping_unblended_rows_changes_no_gradient() {
+    let cam = camera(120, 90);
+    let pool = pool(2);
+    for (n, seed) in [(3000usize, 5u64), (20_000, 6)] {
+        let scene = random_scene(n, 3, seed);
+        let (_, mut state) = render(&pool, &scene, &cam, true);
+        let img = image_grads(&cam, 3, seed + 1);
+        let grads = |state: &CpuState| {
+            let g = backward_in(&pool, state, &output_grads(&img, true), true).unwrap();
+            let mut v = bits(&geometry_gradients(&g));
+            v.extend(bits(&g.features));
+            v
+        };
+        let skipping = grads(&state);
+        let spanned: Vec<u8> = state.bins.entries.iter().map(|e| e.rows as u8).collect();
+        let skipped = spanned
+            .iter()
+            .zip(&state.pixels.blended_rows)
+            .filter(|(s, b)| s != b)
+            .count();
+        assert!(skipped > 0, "N={n}: every spanned row was blended");
+        state.pixels.blended_rows = spanned;
+        assert!(skipping == grads(&state), "N={n}: the skip changed a gradient");
+    }
+}
