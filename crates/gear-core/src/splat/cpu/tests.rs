@@ -334,6 +334,9 @@ fn skipping_unblended_rows_changes_no_gradient() {
             .count();
         assert!(skipped > 0, "N={n}: every spanned row was blended");
         state.pixels.blended_rows = spanned;
-        assert!(skipping == grads(&state), "N={n}: the skip changed a gradient");
+        assert!(
+            skipping == grads(&state),
+            "N={n}: the skip changed a gradient"
+        );
     }
 }
