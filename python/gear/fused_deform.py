@@ -15,17 +15,13 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from gear import _core
+from gear.splat import as_numpy
 
 __all__ = ["fused_deform"]
-
-
-def _numpy(t: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().numpy())
 
 
 class _FusedDeform(torch.autograd.Function):
@@ -33,7 +29,7 @@ class _FusedDeform(torch.autograd.Function):
     def forward(
         ctx: Any, means: Tensor, quats: Tensor, weights: Tensor, qr: Tensor, qd: Tensor
     ) -> tuple[Tensor, Tensor]:
-        arrays = [_numpy(t) for t in (means, quats, weights, qr, qd)]
+        arrays = [as_numpy(t) for t in (means, quats, weights, qr, qd)]
         means_d, quats_d = _core.deform(*arrays)
         ctx.save_for_backward(means, quats, weights, qr, qd)
         return torch.from_numpy(means_d), torch.from_numpy(quats_d)
@@ -48,8 +44,8 @@ class _FusedDeform(torch.autograd.Function):
         gq = torch.zeros_like(quats) if grad_quats is None else grad_quats
         wanted = ctx.needs_input_grad
         grads = _core.deform_backward(
-            *[_numpy(t) for t in inputs], _numpy(gm.to(means.dtype)),
-            _numpy(gq.to(means.dtype)), wanted[3] or wanted[4],
+            *[as_numpy(t) for t in inputs], as_numpy(gm.to(means.dtype)),
+            as_numpy(gq.to(means.dtype)), wanted[3] or wanted[4],
         )
         return tuple(
             torch.from_numpy(g) if want and g is not None else None

@@ -17,12 +17,11 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from gear import _core
-from gear.splat import resolve_backend
+from gear.splat import as_numpy, resolve_backend
 
 __all__ = ["MAX_DEGREE", "SH_C0", "coefficient_count", "sh_to_rgb"]
 
@@ -35,16 +34,12 @@ def coefficient_count(degree: int) -> int:
     return (degree + 1) ** 2
 
 
-def _numpy(t: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().numpy())
-
-
 class _ShToRgb(torch.autograd.Function):
     """rgb [N,3] from dirs [N,3] and coeffs [N,K,3]; gradients to both."""
 
     @staticmethod
     def forward(ctx: Any, dirs: Tensor, coeffs: Tensor, backend: str) -> Tensor:
-        d, c = _numpy(dirs), _numpy(coeffs)
+        d, c = as_numpy(dirs), as_numpy(coeffs)
         if dirs.dtype == torch.float64:
             rgb = _core.sh_reference_forward(d, c)
         else:
@@ -56,8 +51,8 @@ class _ShToRgb(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad_rgb: Tensor) -> tuple[Tensor | None, ...]:
         dirs, coeffs = ctx.saved_tensors
-        d, c = _numpy(dirs), _numpy(coeffs)
-        g = _numpy(grad_rgb.to(dirs.dtype))
+        d, c = as_numpy(dirs), as_numpy(coeffs)
+        g = as_numpy(grad_rgb.to(dirs.dtype))
         if dirs.dtype == torch.float64:
             grad_coeffs, grad_dirs = _core.sh_reference_backward(d, c, g)
         else:

@@ -32,7 +32,10 @@ from torch import Tensor
 from gear import _core
 from gear.camera import Camera
 
-__all__ = ["BACKENDS", "Camera", "RenderOutput", "auto_backend", "rasterize", "resolve_backend"]
+__all__ = [
+    "BACKENDS", "Camera", "RenderOutput", "as_numpy", "auto_backend", "rasterize",
+    "resolve_backend",
+]
 
 MAX_CHANNELS = 64
 BACKENDS = ("cpu", "wgpu")
@@ -118,8 +121,8 @@ def _check_inputs(arrays: tuple[Tensor, ...], camera: Camera, background: Tensor
     return background
 
 
-def _numpy(t: Tensor) -> np.ndarray:
-    """A zero-copy view of a contiguous float32 CPU tensor; others (e.g. the expanded gradient
+def as_numpy(t: Tensor) -> np.ndarray:
+    """A zero-copy view of a contiguous CPU tensor; others (e.g. the expanded gradient
     of a sum) are copied by numpy on this thread rather than by a torch kernel on its OpenMP
     workers, which would compete with the executor's threads for the cores."""
     return np.ascontiguousarray(t.detach().numpy())
@@ -143,12 +146,12 @@ class _Rasterize(torch.autograd.Function):
     ) -> tuple[Tensor, ...]:
         render = _core.rasterize_forward_cpu if backend == "cpu" else _core.rasterize_forward
         image, alpha, depth_image, state = render(
-            *(_numpy(t) for t in (means, quats, log_scales, opacity_logits, features)),
+            *(as_numpy(t) for t in (means, quats, log_scales, opacity_logits, features)),
             np.ascontiguousarray(camera.world_to_cam, dtype=np.float32),
             (camera.fx, camera.fy, camera.cx, camera.cy),
             camera.width,
             camera.height,
-            _numpy(background),
+            as_numpy(background),
             depth,
         )
         ctx.state = state
@@ -158,14 +161,14 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx: Any, *grads: Tensor) -> tuple[Tensor | None, ...]:
-        grad_depth = _numpy(grads[2].float()) if ctx.depth else None
+        grad_depth = as_numpy(grads[2].float()) if ctx.depth else None
         wanted = ctx.needs_input_grad[:5]
         # Constant features (e.g. detached colours) skip their gradients, a per-channel cost of
         # the backward; the feature image's gradient still enters the others.
         arrays = _core.rasterize_backward(
             ctx.state,
-            _numpy(grads[0].float()),
-            _numpy(grads[1].float()),
+            as_numpy(grads[0].float()),
+            as_numpy(grads[1].float()),
             grad_depth,
             features_grad=wanted[4],
         )
