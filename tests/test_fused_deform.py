@@ -107,3 +107,22 @@ def test_bad_input_is_one_clear_error() -> None:
     means[1, 2] = float("nan")
     with pytest.raises(ValueError, match="deform means has a non-finite value at flat index 5"):
         fused_deform(means, quats, weights, qr, qd)
+
+
+@pytest.mark.parametrize("k", [1, 2, 4])
+def test_logits_match_the_reference_through_softmax(k: int) -> None:
+    inputs = _scene(150, k, torch.float64, seed=20 + k)
+    logits = (3 * torch.randn(150, k, dtype=torch.float64)).requires_grad_()
+    fused = [*inputs[:2], logits, *inputs[3:]]
+
+    def reference(means, quats, lg, qr, qd):
+        return deform(means, quats, torch.softmax(lg, dim=1), qr, qd)
+
+    want_out, want_grads = _both(fused, reference)
+    got_out, got_grads = _both(fused, lambda *a: fused_deform(*a, softmax=True))
+    for got, want in zip(got_out + got_grads, want_out + want_grads, strict=True):
+        assert torch.allclose(got, want, rtol=0, atol=1e-10)
+    small = [t.detach()[:6].clone().requires_grad_() for t in fused[:3]]
+    motions = [t.detach().clone().requires_grad_() for t in fused[3:]]
+    assert torch.autograd.gradcheck(
+        lambda *a: fused_deform(*a, softmax=True), (*small, *motions))

@@ -3,11 +3,14 @@ linear dual-quaternion blend of K part motions, forward and backward in one pass
 (Rust threads) instead of a chain of [N, K] tensor operations.
 
     means_d, quats_d = fused_deform(means, quats, weights, qr, qd)
+    means_d, quats_d = fused_deform(means, quats, logits, qr, qd, softmax=True)
 
 Same maths and conventions as the torch reference (gear.kinematics.deform, which the tests
 compare it with): each Gaussian's part motions are sign-aligned with its heaviest part, mixed
 by its weights and normalised; gradients flow to all five inputs (to qr and qd only when they
-require them). float32 for training; float64 runs the same code in double precision, for
+require them). With `softmax=True` the third input holds part logits and each Gaussian's
+weights are their softmax (torch's softmax along a short last dimension costs more than this
+whole op). float32 for training; float64 runs the same code in double precision, for
 gradient checks. Non-finite inputs raise a ValueError.
 """
 
@@ -27,11 +30,13 @@ __all__ = ["fused_deform"]
 class _FusedDeform(torch.autograd.Function):
     @staticmethod
     def forward(
-        ctx: Any, means: Tensor, quats: Tensor, weights: Tensor, qr: Tensor, qd: Tensor
+        ctx: Any, means: Tensor, quats: Tensor, weights: Tensor, qr: Tensor, qd: Tensor,
+        softmax: bool,
     ) -> tuple[Tensor, Tensor]:
         arrays = [as_numpy(t) for t in (means, quats, weights, qr, qd)]
-        means_d, quats_d = _core.deform(*arrays)
+        means_d, quats_d = _core.deform(*arrays, softmax)
         ctx.save_for_backward(means, quats, weights, qr, qd)
+        ctx.softmax = softmax
         return torch.from_numpy(means_d), torch.from_numpy(quats_d)
 
     @staticmethod
@@ -45,20 +50,22 @@ class _FusedDeform(torch.autograd.Function):
         wanted = ctx.needs_input_grad
         grads = _core.deform_backward(
             *[as_numpy(t) for t in inputs], as_numpy(gm.to(means.dtype)),
-            as_numpy(gq.to(means.dtype)), wanted[3] or wanted[4],
+            as_numpy(gq.to(means.dtype)), wanted[3] or wanted[4], ctx.softmax,
         )
-        return tuple(
+        return *(
             torch.from_numpy(g) if want and g is not None else None
-            for g, want in zip(grads, wanted, strict=True)
-        )
+            for g, want in zip(grads, wanted[:5], strict=True)
+        ), None
 
 
 def fused_deform(
-    means: Tensor, quats: Tensor, weights: Tensor, qr: Tensor, qd: Tensor
+    means: Tensor, quats: Tensor, weights: Tensor, qr: Tensor, qd: Tensor, *,
+    softmax: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """Moves Gaussians (means [N,3], quats [N,4]) by the blend of K part motions (qr, qd
-    [K,4]) with weights [N,K]; returns (means', quats'). CPU tensors of one dtype, float32 or
-    float64 (see the module docstring)."""
+    [K,4]) with weights [N,K] (logits whose softmax per Gaussian gives the weights, with
+    `softmax`); returns (means', quats'). CPU tensors of one dtype, float32 or float64 (see
+    the module docstring)."""
     named = {"means": means, "quats": quats, "weights": weights, "qr": qr, "qd": qd}
     for name, value in named.items():
         if not isinstance(value, Tensor):
@@ -69,4 +76,4 @@ def fused_deform(
     if len(dtypes) != 1 or means.dtype not in (torch.float32, torch.float64):
         raise TypeError("means, quats, weights, qr and qd must all be float32 or all float64, "
                         f"got {', '.join(str(t.dtype) for t in named.values())}")
-    return _FusedDeform.apply(means, quats, weights, qr, qd)
+    return _FusedDeform.apply(means, quats, weights, qr, qd, bool(softmax))

@@ -6,11 +6,13 @@
 //! - [`splat`]: the differentiable Gaussian rasterizer (WGSL kernels) and its f64 CPU reference.
 //! - [`voxel`]: shared voxel grids, dilation and connected components.
 //! - [`knn`]: k nearest neighbours in 3D.
+//! - [`consistency`]: stage 3's KNN consistency term of the part logits, with its gradient.
 //! - [`motion`]: Gaussians moved by a soft blend of rigid part motions, and its backward.
 //! - [`sh`]: view-dependent colour from spherical harmonics (degree 0..=3), its own op.
 //!
 //! Nothing here knows about Python or torch; arrays come in and go out as slices.
 
+pub mod consistency;
 pub mod error;
 pub mod gpu;
 pub mod knn;

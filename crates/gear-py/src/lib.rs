@@ -2,6 +2,7 @@
 //! GIL around GPU work, and turns every Rust error or panic into a Python exception.
 
 mod args;
+mod consistency;
 mod errors;
 mod geometry;
 mod motion;
@@ -54,5 +55,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     geometry::register(m)?;
     sh::register(m)?;
     motion::register(m)?;
+    consistency::register(m)?;
     Ok(())
 }

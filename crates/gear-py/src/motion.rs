@@ -35,13 +35,14 @@ impl<'py, T: Dtype + Real> Args<'py, T> {
         })
     }
 
-    fn input(&self) -> PyResult<DeformInput<'_, T>> {
+    fn input(&self, softmax: bool) -> PyResult<DeformInput<'_, T>> {
         Ok(DeformInput {
             means: self.means.as_slice()?,
             quats: self.quats.as_slice()?,
             weights: self.weights.as_slice()?,
             qr: self.qr.as_slice()?,
             qd: self.qd.as_slice()?,
+            softmax,
         })
     }
 }
@@ -54,9 +55,10 @@ fn rows<'py, T: Dtype>(py: Python<'py>, v: Vec<T>, width: usize) -> PyResult<Arr
 fn forward<'py, T: Dtype + Real>(
     py: Python<'py>,
     arrays: [&Array<'py>; 5],
+    softmax: bool,
 ) -> PyResult<(Array<'py>, Array<'py>)> {
     let args = Args::<T>::new(arrays)?;
-    let input = args.input()?;
+    let input = args.input(softmax)?;
     let out = guarded(py, || motion::forward(&input))?;
     Ok((rows(py, out.means, 3)?, rows(py, out.quats, 4)?))
 }
@@ -75,13 +77,14 @@ fn backward<'py, T: Dtype + Real>(
     grad_means: &Array<'py>,
     grad_quats: &Array<'py>,
     motion_grads: bool,
+    softmax: bool,
 ) -> PyResult<Gradients<'py>> {
     let args = Args::<T>::new(arrays)?;
     let n = args.means.shape()[0];
     let k = args.qr.shape()[0];
     let gm = array::<T>(grad_means, "grad_means", &[Dim::Fixed(n), Dim::Fixed(3)])?;
     let gq = array::<T>(grad_quats, "grad_quats", &[Dim::Fixed(n), Dim::Fixed(4)])?;
-    let input = args.input()?;
+    let input = args.input(softmax)?;
     let (gm, gq) = (gm.as_slice()?, gq.as_slice()?);
     let g = guarded(py, || motion::backward(&input, gm, gq, motion_grads))?;
     let motion = |v: Vec<T>| -> PyResult<Option<Array<'py>>> {
@@ -97,8 +100,10 @@ fn backward<'py, T: Dtype + Real>(
 }
 
 /// (means' [N, 3], quats' [N, 4]): Gaussians moved by the blend of the K part motions
-/// `qr`, `qd` [K, 4] with `weights` [N, K] (every array float32, or every one float64).
+/// `qr`, `qd` [K, 4] with `weights` [N, K] (every array float32, or every one float64);
+/// with `softmax`, `weights` are logits whose per-Gaussian softmax gives the weights.
 #[pyfunction]
+#[pyo3(signature = (means, quats, weights, qr, qd, softmax = false))]
 fn deform<'py>(
     py: Python<'py>,
     means: &Array<'py>,
@@ -106,20 +111,22 @@ fn deform<'py>(
     weights: &Array<'py>,
     qr: &Array<'py>,
     qd: &Array<'py>,
+    softmax: bool,
 ) -> PyResult<(Array<'py>, Array<'py>)> {
     let arrays = [means, quats, weights, qr, qd];
     if has_dtype::<f64>(means) {
-        forward::<f64>(py, arrays)
+        forward::<f64>(py, arrays, softmax)
     } else {
-        forward::<f32>(py, arrays)
+        forward::<f32>(py, arrays, softmax)
     }
 }
 
 /// Gradients (means, quats, weights, qr, qd) of a loss whose gradients with respect to the
 /// outputs of `deform` are `grad_means` [N, 3] and `grad_quats` [N, 4]; qr and qd are None
-/// unless `motion_grads`.
+/// unless `motion_grads`; with `softmax` (as in `deform`) the third is the logits' gradient.
 #[pyfunction]
-#[allow(clippy::too_many_arguments)] // the op's five inputs, two upstream gradients, one flag
+#[pyo3(signature = (means, quats, weights, qr, qd, grad_means, grad_quats, motion_grads, softmax = false))]
+#[allow(clippy::too_many_arguments)] // the op's five inputs, two upstream gradients, two flags
 fn deform_backward<'py>(
     py: Python<'py>,
     means: &Array<'py>,
@@ -130,12 +137,13 @@ fn deform_backward<'py>(
     grad_means: &Array<'py>,
     grad_quats: &Array<'py>,
     motion_grads: bool,
+    softmax: bool,
 ) -> PyResult<Gradients<'py>> {
     let arrays = [means, quats, weights, qr, qd];
     if has_dtype::<f64>(means) {
-        backward::<f64>(py, arrays, grad_means, grad_quats, motion_grads)
+        backward::<f64>(py, arrays, grad_means, grad_quats, motion_grads, softmax)
     } else {
-        backward::<f32>(py, arrays, grad_means, grad_quats, motion_grads)
+        backward::<f32>(py, arrays, grad_means, grad_quats, motion_grads, softmax)
     }
 }
 

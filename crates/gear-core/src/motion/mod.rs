@@ -42,6 +42,10 @@ pub struct DeformInput<'a, T> {
     pub weights: &'a [T],
     pub qr: &'a [T],
     pub qd: &'a [T],
+    /// `weights` holds part logits: each Gaussian's weights are their softmax, and the
+    /// backward's `weights` gradient is the logits'. (A softmax over K = 2 columns costs
+    /// torch more than this whole op: its kernel is slow along a short last dimension.)
+    pub softmax: bool,
 }
 
 /// Deformed means [N, 3] and rotations [N, 4].
@@ -109,6 +113,26 @@ impl<T: Real> DeformInput<'_, T> {
         Ok(())
     }
 
+    /// Gaussian `i`'s weights: its row of `weights`, or their softmax (written to `buffer`).
+    fn weights_of<'s>(&'s self, i: usize, buffer: &'s mut [T]) -> &'s [T] {
+        let k = buffer.len();
+        let row = &self.weights[k * i..k * (i + 1)];
+        if !self.softmax {
+            return row;
+        }
+        // The largest logit subtracted first: every exponential is at most 1, none overflows.
+        let top = row.iter().fold(T::neg_infinity(), |m, &v| m.max(v));
+        let mut total = T::zero();
+        for (w, &v) in buffer.iter_mut().zip(row) {
+            *w = (v - top).exp();
+            total = total + *w;
+        }
+        for w in buffer.iter_mut() {
+            *w = *w / total;
+        }
+        buffer
+    }
+
     fn motions(&self) -> (Vec<Quat<T>>, Vec<Quat<T>>) {
         let quats = |flat: &[T]| {
             flat.chunks_exact(4)
@@ -116,6 +140,18 @@ impl<T: Real> DeformInput<'_, T> {
                 .collect()
         };
         (quats(self.qr), quats(self.qd))
+    }
+}
+
+/// Turns the gradient with respect to softmax weights `w` into the one with respect to their
+/// logits, in place: dL/dl_p = w_p (dL/dw_p - sum_q w_q dL/dw_q).
+fn softmax_backward<T: Real>(w: &[T], grad: &mut [T]) {
+    let along = w
+        .iter()
+        .zip(grad.iter())
+        .fold(T::zero(), |s, (&w, &g)| s + w * g);
+    for (g, &w) in grad.iter_mut().zip(w) {
+        *g = w * (*g - along);
     }
 }
 
@@ -155,11 +191,12 @@ pub fn forward<T: Real>(input: &DeformInput<'_, T>) -> Result<Deformed<T>> {
     let chunks = in_chunks(input.len(), |range| {
         let mut means = Vec::with_capacity(3 * range.len());
         let mut quats = Vec::with_capacity(4 * range.len());
+        let mut weights = vec![T::zero(); k];
         for i in range {
             let (m, q) = forward_one(
                 &vec3(&input.means[3 * i..]),
                 &quat4(&input.quats[4 * i..]),
-                &input.weights[k * i..k * (i + 1)],
+                input.weights_of(i, &mut weights),
                 &motions,
             );
             means.extend_from_slice(&m);
@@ -211,11 +248,13 @@ pub fn backward<T: Real>(
             qd: vec![],
         };
         let mut sums = vec![[T::zero(); 4]; if motion_grads { 2 * k } else { 0 }];
+        let mut weights = vec![T::zero(); k];
         for (r, i) in range.enumerate() {
+            let w = input.weights_of(i, &mut weights);
             backward_one(
                 &vec3(&input.means[3 * i..]),
                 &quat4(&input.quats[4 * i..]),
-                &input.weights[k * i..k * (i + 1)],
+                w,
                 &motions,
                 &vec3(&grad_means[3 * i..]),
                 &quat4(&grad_quats[4 * i..]),
@@ -226,6 +265,9 @@ pub fn backward<T: Real>(
                     motions: motion_grads.then_some(&mut sums[..]),
                 },
             );
+            if input.softmax {
+                softmax_backward(w, &mut g.weights[k * r..k * (r + 1)]);
+            }
         }
         (g, sums)
     })?;

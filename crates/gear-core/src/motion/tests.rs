@@ -14,6 +14,8 @@ struct Scene<T = f64> {
     weights: Vec<T>,
     qr: Vec<T>,
     qd: Vec<T>,
+    /// `weights` are logits (see [`DeformInput::softmax`]).
+    softmax: bool,
 }
 
 impl<T: Copy> Scene<T> {
@@ -24,6 +26,7 @@ impl<T: Copy> Scene<T> {
             weights: &self.weights,
             qr: &self.qr,
             qd: &self.qd,
+            softmax: self.softmax,
         }
     }
 
@@ -36,6 +39,7 @@ impl<T: Copy> Scene<T> {
             weights: all(&self.weights),
             qr: all(&self.qr),
             qd: all(&self.qd),
+            softmax: self.softmax,
         }
     }
 }
@@ -70,6 +74,17 @@ fn random_scene(seed: u64, n: usize, k: usize) -> Scene {
         weights: uniform(&mut rng, k * n, 0.0, 1.0),
         qr,
         qd,
+        softmax: false,
+    }
+}
+
+/// [`random_scene`] with logits in [-3, 3] instead of weights.
+fn random_logit_scene(seed: u64, n: usize, k: usize) -> Scene {
+    let mut rng = fastrand::Rng::with_seed(seed + 1000);
+    Scene {
+        weights: uniform(&mut rng, k * n, -3.0, 3.0),
+        softmax: true,
+        ..random_scene(seed, n, k)
     }
 }
 
@@ -81,8 +96,14 @@ fn loss(scene: &Scene, probe_m: &[f64], probe_q: &[f64]) -> f64 {
 
 #[test]
 fn gradients_match_finite_differences() {
-    for (seed, k) in [(1, 1), (2, 2), (3, 3), (4, 5)] {
-        let mut scene = random_scene(seed, 6, k);
+    let cases = [(1, 1), (2, 2), (3, 3), (4, 5)];
+    let scenes = cases.iter().flat_map(|&(seed, k)| {
+        [
+            (seed, k, random_scene(seed, 6, k)),
+            (seed, k, random_logit_scene(seed, 6, k)),
+        ]
+    });
+    for (seed, k, mut scene) in scenes {
         let mut rng = fastrand::Rng::with_seed(100 + seed);
         let probe_m = uniform(&mut rng, scene.means.len(), -1.0, 1.0);
         let probe_q = uniform(&mut rng, scene.quats.len(), -1.0, 1.0);
@@ -107,11 +128,53 @@ fn gradients_match_finite_differences() {
                 let numeric = (up - down) / (2.0 * h);
                 assert!(
                     (numeric - grad).abs() <= 1e-6 * (1.0 + numeric.abs()),
-                    "seed {seed}, K {k}, {name}[{i}]: analytic {grad} vs numeric {numeric}"
+                    "seed {seed}, K {k}, softmax {}, {name}[{i}]: analytic {grad} vs numeric {numeric}",
+                    scene.softmax
                 );
             }
         }
     }
+}
+
+#[test]
+fn logits_give_the_deformation_of_their_softmax() {
+    let logits = random_logit_scene(11, 50, 3);
+    let mut weights = random_logit_scene(11, 50, 3);
+    weights.softmax = false;
+    for row in weights.weights.chunks_exact_mut(3) {
+        let total: f64 = row.iter().map(|v| v.exp()).sum();
+        row.iter_mut().for_each(|v| *v = v.exp() / total);
+    }
+    let (a, b) = (
+        forward(&logits.input()).unwrap(),
+        forward(&weights.input()).unwrap(),
+    );
+    for (x, y) in a
+        .means
+        .iter()
+        .chain(&a.quats)
+        .zip(b.means.iter().chain(&b.quats))
+    {
+        assert!((x - y).abs() < 1e-12, "{x} vs {y}");
+    }
+    // Logits far apart (a weight underflows to 0) stay finite, forward and backward.
+    let mut extreme = random_logit_scene(12, 20, 3);
+    extreme
+        .weights
+        .iter_mut()
+        .enumerate()
+        .for_each(|(i, v)| *v = if i % 2 == 0 { 50.0 } else { -50.0 });
+    let narrow = extreme.map(|v| v as f32);
+    let out = forward(&narrow.input()).unwrap();
+    let ones = vec![1.0f32; narrow.quats.len()];
+    let g = backward(&narrow.input(), &ones[..narrow.means.len()], &ones, true).unwrap();
+    assert!(out.means.iter().chain(&out.quats).all(|v| v.is_finite()));
+    assert!(g
+        .weights
+        .iter()
+        .chain(&g.qr)
+        .chain(&g.qd)
+        .all(|v| v.is_finite()));
 }
 
 #[test]
@@ -214,6 +277,7 @@ fn hard_cases_stay_finite() {
             weights,
             qr,
             qd,
+            softmax: false,
         };
         let out = forward(&scene.input()).unwrap();
         let g = backward(

@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import torch
 
+from gear.fused_consistency import fused_knn_consistency
 from gear.fused_deform import fused_deform
 from gear.losses import (
     depth_log_l1,
-    knn_consistency_loss,
     opacity_binarisation,
     photometric,
     region_pseudo_labels,
@@ -31,9 +31,9 @@ def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
     if phase == "E":
         qr, qd = qr.detach(), qd.detach()
     logits = g["logits"]
-    weights = torch.softmax(logits, dim=1)
     index, view, bg = state.target_view()
-    means_d, quats_d = fused_deform(g["means"], g["quats"], weights, qr, qd)
+    # Soft assignment: each Gaussian's part weights are the softmax of its logits.
+    means_d, quats_d = fused_deform(g["means"], g["quats"], logits, qr, qd, softmax=True)
     means_d.retain_grad()
     # Shared by both renders; with spherical harmonics the colours depend on the camera and
     # the pose, so each render computes its own.
@@ -66,7 +66,7 @@ def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
 def segmentation_terms(state: RefineState, logits: torch.Tensor) -> dict:
     """Region-voted pseudo-labels on a rendered logit image (CE) + KNN smoothness."""
     c, g = state.config, state.gaussians
-    terms = {"knn": c.lambda_knn * knn_consistency_loss(logits, state.neighbours())}
+    terms = {"knn": c.lambda_knn * fused_knn_consistency(logits, state.neighbours())}
     if not state.region_views:
         return terms
     view = state.pick(state.region_views)
