@@ -1,5 +1,7 @@
 """The losses of training (torch, [H,W,C] images): photometric, depth and opacity terms of
-stages 1 and 3, and the E-step's part supervision (docs/method.md, "Losses").
+stages 1 and 3, and the E-step's part supervision (docs/method.md, "Losses"). SSIM runs as a
+native op (gear.fused_ssim) wherever only the render needs a gradient; `ssim_reference` is its
+torch form.
 
 - region_pseudo_labels: 2D region masks (SAM-style, ids meaningless across images) vote on the
   part of each region from the rendered part probabilities.
@@ -15,6 +17,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from gear.fused_ssim import fused_ssim
 from gear.kinematics import safe_norm
 
 _SSIM_WINDOW = 11
@@ -31,9 +34,25 @@ def _gaussian_kernel(dtype: torch.dtype) -> torch.Tensor:
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Mean structural similarity of two [H,W,C] images in [0,1] (11x11 Gaussian window,
-    zero padding), computed with a separable blur (two 1-D passes)."""
+    zero padding): the native op (gear.fused_ssim) when only `a` may need a gradient, as in
+    every photometric loss, else the torch form below."""
+    _check_ssim_shapes(a, b)
+    native = (a.device.type == "cpu" and b.device.type == "cpu" and a.dtype == b.dtype
+              and a.dtype in (torch.float32, torch.float64))
+    if not native or (b.requires_grad and torch.is_grad_enabled()):
+        return ssim_reference(a, b)
+    return fused_ssim(a, b)
+
+
+def _check_ssim_shapes(a: torch.Tensor, b: torch.Tensor) -> None:
     if a.shape != b.shape or a.dim() != 3:
         raise ValueError(f"ssim: expected two [H,W,C] images of one shape: {a.shape}, {b.shape}")
+
+
+def ssim_reference(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """The torch form of `ssim`, computed with a separable blur (two 1-D passes);
+    differentiable in both images."""
+    _check_ssim_shapes(a, b)
     channels = a.shape[2]
     g = _gaussian_kernel(a.dtype)
     pad = _SSIM_WINDOW // 2

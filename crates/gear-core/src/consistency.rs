@@ -7,7 +7,7 @@
 //! visited once, in order, on the calling thread (~1 ms): the sums have one fixed order, so the
 //! result is the same on every run. The loss is summed in f64.
 
-use crate::error::{check_finite, GearError, Result};
+use crate::error::{check_finite, invalid, Result};
 use crate::motion::Real;
 
 /// The term's value and its gradient with respect to the logits ([N, K], row-major).
@@ -89,10 +89,6 @@ pub fn knn_consistency<T: Real>(
     }
     let loss = T::from(total / valid as f64).expect("a finite mean converts");
     Ok(Consistency { loss, grad })
-}
-
-fn invalid(message: String) -> GearError {
-    GearError::InvalidInput(message)
 }
 
 #[cfg(test)]

@@ -17,6 +17,11 @@ pub enum GearError {
 
 pub type Result<T> = std::result::Result<T, GearError>;
 
+/// A [`GearError::InvalidInput`] with `message`.
+pub(crate) fn invalid(message: String) -> GearError {
+    GearError::InvalidInput(message)
+}
+
 /// An error naming the first non-finite value of `values` (`what`: the array, for the
 /// message); a non-finite input is a bug upstream, reported rather than spread as NaNs.
 pub(crate) fn check_finite<T: Copy + Into<f64>>(what: &str, values: &[T]) -> Result<()> {

@@ -9,6 +9,7 @@
 //! - [`consistency`]: stage 3's KNN consistency term of the part logits, with its gradient.
 //! - [`motion`]: Gaussians moved by a soft blend of rigid part motions, and its backward.
 //! - [`sh`]: view-dependent colour from spherical harmonics (degree 0..=3), its own op.
+//! - [`ssim`]: structural similarity of two images and its gradient (the photometric loss).
 //!
 //! Nothing here knows about Python or torch; arrays come in and go out as slices.
 
@@ -20,6 +21,7 @@ pub mod motion;
 pub mod reduce;
 pub mod sh;
 pub mod splat;
+pub mod ssim;
 pub mod voxel;
 
 pub use error::{GearError, Result};

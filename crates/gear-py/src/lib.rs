@@ -8,6 +8,7 @@ mod geometry;
 mod motion;
 mod sh;
 mod splat;
+mod ssim;
 
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -56,5 +57,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     sh::register(m)?;
     motion::register(m)?;
     consistency::register(m)?;
+    ssim::register(m)?;
     Ok(())
 }

@@ -21,7 +21,7 @@ use rayon::prelude::*;
 
 use self::blend::{backward_one, forward_one, GradientsOne, Motions};
 use self::quat::Quat;
-use crate::error::{check_finite, GearError, Result};
+use crate::error::{check_finite, invalid, Result};
 use crate::splat::cpu::global_pool;
 
 /// The element types the op runs in.
@@ -153,10 +153,6 @@ fn softmax_backward<T: Real>(w: &[T], grad: &mut [T]) {
     for (g, &w) in grad.iter_mut().zip(w) {
         *g = w * (*g - along);
     }
-}
-
-fn invalid(message: String) -> GearError {
-    GearError::InvalidInput(message)
 }
 
 fn vec3<T: Copy>(v: &[T]) -> [T; 3] {

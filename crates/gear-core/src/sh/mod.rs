@@ -21,7 +21,7 @@ pub mod reference;
 #[cfg(test)]
 mod tests;
 
-use crate::error::{check_finite, GearError, Result};
+use crate::error::{check_finite, invalid, Result};
 
 /// Highest supported degree; (degree + 1)^2 coefficients per colour channel.
 pub const MAX_DEGREE: u32 = 3;
@@ -102,8 +102,4 @@ impl<'a, T: Copy + Into<f64>> ShInput<'a, T> {
         }
         check_finite("sh grad_rgb", grad_rgb)
     }
-}
-
-fn invalid(message: String) -> GearError {
-    GearError::InvalidInput(message)
 }
