@@ -11,12 +11,20 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
-from gear.articulation import PartMotion, joint_readings, resolve_ambiguous_joint
+from gear.articulation import PartMotion, extract_joint, joint_readings, resolve_ambiguous_joint
 from gear.kinematics import quat_angle
 from gear.pipeline.common import check_finite
+from gear.pipeline.stage3.joints import object_center, object_radius
 from gear.pipeline.stage3.shared import RefineState, motion_optimizer
 
 Motion = tuple[np.ndarray, np.ndarray]  # (R [3,3], t [3])
+
+# A hinge's axis passes within this many object radii of the object's centre: a hinge turning
+# less than ε about an axis farther out moves its part along an arc of radius far beyond the
+# object, which over a small angle is its chord: a slide in disguise, whatever the images'
+# slight preference for the curve (a drawer whose motion settled as a 0.6° turn about an axis
+# 25 object sizes away scored 4 % below its slide).
+HINGE_REACH = 2.0
 
 
 def classify(state: RefineState) -> None:
@@ -31,12 +39,14 @@ def classify(state: RefineState) -> None:
         scores.append(motion_loss(state, candidate))
         return scores[-1]
 
+    center = object_center(state.gaussians)
     switched = classify_joints(
         state.motion,
         eps_deg=c.revolute_eps_deg,
         score=score if resolve else None,
         init_motions=state.init_motions if resolve and state.init_motions else None,
         small_hinge_margin=c.small_hinge_margin,
+        hinge_reach=(center, HINGE_REACH * object_radius(state.gaussians, center)),
     )
     qr, _ = state.motion.motion()
     angles = [round(math.degrees(float(a)), 3) for a in quat_angle(qr.detach())[1:]]
@@ -95,12 +105,24 @@ def _epsilon_prior(candidate: PartMotion, k: int, value: float, eps: float, marg
     return value + margin * abs(value) if against else value
 
 
+def _axis_out_of_reach(qr: torch.Tensor, qd: torch.Tensor,
+                       reach: tuple[np.ndarray, float] | None) -> bool:
+    """Whether the hinge axis of the motion (qr, qd) passes farther than reach = (centre,
+    radius) from centre; False without `reach`."""
+    if reach is None:
+        return False
+    center, radius = reach
+    pivot = extract_joint(qr, qd, center, prismatic=False)["origin"]
+    return float(np.linalg.norm(np.asarray(pivot) - np.asarray(center))) > radius
+
+
 def classify_joints(
     motion: PartMotion,
     eps_deg: float = 10.0,
     score: Callable[[PartMotion], float] | None = None,
     init_motions: Sequence[Sequence[Motion]] | None = None,
     small_hinge_margin: float = 0.0,
+    hinge_reach: tuple[np.ndarray, float] | None = None,
 ) -> list[int]:
     """Turns revolute parts whose rotation is below `eps_deg` into prismatic ones.
 
@@ -116,15 +138,17 @@ def classify_joints(
     (angle 0), so tuned by the scorer it can always match the slide; on near-ties it would win
     by noise. A door that turned 38 degrees lost to its slide by 0.7 % of a loss the images
     of a quick model barely resolve (a real fridge); the images, not noise, must overturn
-    what training found. Returns the parts made prismatic; the caller
-    rebuilds the optimizer state of `motion`.
+    what training found. With `hinge_reach` (centre, radius), a hinge below `eps_deg` whose
+    axis passes farther than radius from centre is typed prismatic by the rule alone, unscored
+    (see HINGE_REACH). Returns the parts made prismatic; the caller rebuilds the optimizer
+    state of `motion`.
     """
     if init_motions is not None and len(init_motions) != motion.num_parts - 1:
         raise ValueError(
             f"init_motions: expected {motion.num_parts - 1} entries, got {len(init_motions)}"
         )
     guesses = [list(e) for e in init_motions] if init_motions is not None else None
-    qr, _ = motion.motion()
+    qr, qd = motion.motion()
     angles = quat_angle(qr.detach())
     eps = math.radians(eps_deg)
     switched = []
@@ -133,7 +157,7 @@ def classify_joints(
             continue
         small = float(angles[k]) < eps
         extra = guesses[k - 1] if guesses is not None else []
-        if score is None:
+        if score is None or (small and _axis_out_of_reach(qr[k], qd[k], hinge_reach)):
             if small:
                 motion.set_prismatic(k)
         elif small or len(extra) > 1:

@@ -18,6 +18,18 @@ def object_center(g: Gaussians) -> np.ndarray:
     return pts.mean(dim=0).numpy().astype(np.float64)
 
 
+def object_radius(g: Gaussians, center: np.ndarray) -> float:
+    """How far the opaque Gaussians reach from `center` (99th percentile of their distances,
+    so that a few floaters do not count)."""
+    means = g["means"].detach()
+    solid = torch.sigmoid(g["opacity"].detach()) > 0.5
+    pts = means[solid] if int(solid.sum()) >= 4 else means
+    if len(pts) == 0:
+        return 0.0
+    dist = (pts - torch.as_tensor(center, dtype=pts.dtype)).norm(dim=1)
+    return float(torch.quantile(dist, 0.99))
+
+
 def start_to_end_joints(motion: PartMotion, canonical: str, center: np.ndarray) -> list[dict]:
     """joints.json entries: each movable part's motion expressed from start to end."""
     qr, qd = motion.motion(1.0)
