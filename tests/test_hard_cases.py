@@ -332,9 +332,13 @@ def test_half_turn_door_is_a_180_degree_hinge_chosen_by_the_images(runs):
     k = pred["part"]
     center = run.refine.gaussians["means"].detach().mean(dim=0).numpy()
     readings = PartMotion.from_rt(run.coarse["candidates"][k - 1], dtype=torch.float64)
-    kinds = sorted(j["type"] for j in readings.joints(center))
-    assert kinds == ["prismatic", "revolute"], (f"stage 2 readings of the door: {kinds}",
-                                                run.notes)
+    kinds = [(j["type"], round(j["angle_deg"], 1)) for j in readings.joints(center)]
+    # Both the slide and the half turn (other readings may come along, e.g. a hinge about the
+    # slab's other edge).
+    assert any(kind == "prismatic" for kind, _ in kinds), (f"stage 2 readings: {kinds}",
+                                                            run.notes)
+    assert any(kind == "revolute" and angle > 170 for kind, angle in kinds), (
+        f"stage 2 readings: {kinds}", run.notes)
     scored = [(joints[k - 1], loss) for joints, loss in spies.scored]
     assert any(j["type"] == "prismatic" for j, _ in scored), scored
     assert any(j["type"] == "revolute" and j["angle_deg"] > 170 for j, _ in scored), scored

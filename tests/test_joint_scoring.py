@@ -18,7 +18,7 @@ from gear.config import make_config
 from gear.data import View
 from gear.kinematics import deform, dq_to_rt, quat_angle
 from gear.pipeline.common import TrainView
-from gear.pipeline.stage3 import Refine
+from gear.pipeline.stage3 import Refine, joint_types
 from gear.pipeline.stage3.joint_types import classify, motion_loss
 from gear.splat_reference import rasterize_dense
 from gear.splats import Gaussians, rendering
@@ -102,7 +102,13 @@ def scoring_case(tune_steps: int) -> tuple[Refine, list]:
     return stage, [(np.eye(3), 1.25 * PULL)]
 
 
-def test_fine_tuned_scoring_picks_the_slide_the_head_start_hid():
+def test_fine_tuned_scoring_picks_the_slide_the_head_start_hid(monkeypatch):
+    # The incumbent turns 5 degrees about an axis ~3 units from a plank of radius ~0.5: the
+    # far-axis rule types it a slide unscored; off, the readings are scored (the point here).
+    stage, _ = scoring_case(tune_steps=0)
+    classify(stage)
+    assert bool(stage.motion.prismatic[1]) and stage.events[-1]["scores"] == []
+    monkeypatch.setattr(joint_types, "HINGE_REACH", math.inf)
     untuned, _ = scoring_case(tune_steps=0)
     classify(untuned)
     assert not bool(untuned.motion.prismatic[1])  # scored as they come, the hinge wins

