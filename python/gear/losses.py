@@ -41,6 +41,10 @@ def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
               and a.dtype in (torch.float32, torch.float64))
     if not native or (b.requires_grad and torch.is_grad_enabled()):
         return ssim_reference(a, b)
+    if not (bool(torch.isfinite(a).all()) and bool(torch.isfinite(b).all())):
+        # The native op refuses non-finite images; the torch form lets the NaN reach the
+        # loss, where training stops naming the stage, iteration and term.
+        return ssim_reference(a, b)
     return fused_ssim(a, b)
 
 
