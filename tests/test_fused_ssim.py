@@ -76,3 +76,12 @@ def test_hard_cases_and_errors() -> None:
         fused_ssim(torch.zeros(4, 4, 1), torch.zeros(4, 5, 1))
     with pytest.raises(TypeError, match="float32"):
         fused_ssim(torch.zeros(4, 4, 1), torch.zeros(4, 4, 1, dtype=torch.float64))
+
+
+def test_a_non_finite_image_gives_a_nan_loss_not_an_error() -> None:
+    """Training checks each loss term and names the one that went non-finite: the loss must
+    carry the NaN there rather than the native op raising first."""
+    bad = torch.zeros(8, 8, 3)
+    bad[2, 3, 1] = float("nan")
+    assert torch.isnan(ssim(bad.requires_grad_(), torch.zeros(8, 8, 3)))
+    assert torch.isnan(photometric(torch.zeros(8, 8, 3), bad.detach(), 0.2))
