@@ -10,20 +10,22 @@ from gear.kinematics import dq_conj
 from gear.splats import Gaussians
 
 
-def object_center(g: Gaussians) -> np.ndarray:
-    """Centre of the opaque Gaussians (joint origins are reported nearest to it)."""
+def _solid_means(g: Gaussians) -> torch.Tensor:
+    """Centres of the opaque Gaussians (all of them when fewer than 4 are opaque)."""
     means = g["means"].detach()
     solid = torch.sigmoid(g["opacity"].detach()) > 0.5
-    pts = means[solid] if int(solid.sum()) >= 4 else means
-    return pts.mean(dim=0).numpy().astype(np.float64)
+    return means[solid] if int(solid.sum()) >= 4 else means
+
+
+def object_center(g: Gaussians) -> np.ndarray:
+    """Centre of the opaque Gaussians (joint origins are reported nearest to it)."""
+    return _solid_means(g).mean(dim=0).numpy().astype(np.float64)
 
 
 def object_radius(g: Gaussians, center: np.ndarray) -> float:
     """How far the opaque Gaussians reach from `center` (99th percentile of their distances,
     so that a few floaters do not count)."""
-    means = g["means"].detach()
-    solid = torch.sigmoid(g["opacity"].detach()) > 0.5
-    pts = means[solid] if int(solid.sum()) >= 4 else means
+    pts = _solid_means(g)
     if len(pts) == 0:
         return 0.0
     dist = (pts - torch.as_tensor(center, dtype=pts.dtype)).norm(dim=1)
