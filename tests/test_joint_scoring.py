@@ -10,24 +10,17 @@ import math
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
 from gear.articulation import PartMotion
-from gear.camera import Camera
 from gear.config import make_config
-from gear.data import View
-from gear.kinematics import deform, dq_to_rt, quat_angle
-from gear.pipeline.common import TrainView
+from gear.kinematics import dq_to_rt, quat_angle
 from gear.pipeline.stage3 import Refine, joint_types
 from gear.pipeline.stage3.joint_types import classify, motion_loss
 from gear.splat_reference import rasterize_dense
 from gear.splats import Gaussians, rendering
+from stage3_scenes import grid_gaussians, rot_z, views_of
 
-RES = 16
 TUNE_STEPS = 6
-# The object sits away from the world origin, as real objects do: a hinge's translation then
-# differs from the displacement of its part, so "the hinge's slide" is a poor reading.
-OFFSET = np.array([0.6, 0.0, 0.0])
 PULL = np.array([0.0, -0.25, 0.0])  # the true slide
 
 
@@ -44,46 +37,7 @@ def wall_and_plank() -> Gaussians:
     px, pz = torch.meshgrid(torch.linspace(-0.3, 0.3, 6), torch.tensor([-0.05, 0.05]),
                             indexing="ij")
     plank = torch.stack([px.flatten(), torch.full((12,), -0.1), pz.flatten()], 1)
-    means = torch.cat([wall, plank]) + torch.as_tensor(OFFSET, dtype=torch.float32)
-    n = len(means)
-    logits = torch.full((n, 2), -3.0)
-    logits[:12, 0] = 3.0
-    logits[12:, 1] = 3.0
-    return Gaussians(dict(
-        means=means,
-        quats=torch.tensor([1.0, 0, 0, 0]).repeat(n, 1),
-        log_scales=torch.full((n, 3), -2.3),
-        opacity=torch.full((n,), 3.0),
-        colors=torch.rand(n, 3, generator=torch.Generator().manual_seed(0)),
-        logits=logits,
-    ))
-
-
-def views_of(g: Gaussians, motion: PartMotion, n: int = 3) -> list[TrainView]:
-    """Renders of the hard-assigned model moved by `motion` from a ring of cameras in front."""
-    weights = F.one_hot(g.part_ids(), 2).float()
-    qr, qd = motion.motion()
-    out_views = []
-    with torch.no_grad():
-        means, quats = deform(g["means"], g["quats"], weights, qr, qd)
-        for i in range(n):
-            a = -np.pi / 2 + (i - 1) * 0.6  # in front of the wall (towards -y)
-            eye = OFFSET + np.array([2 * np.cos(a), 2 * np.sin(a), 0.8])
-            cam = Camera.look_at(eye, OFFSET, np.array([0, 0, 1.0]), 0.9, RES, RES)
-            out = rasterize_dense(means, quats, g["log_scales"], g["opacity"], g.rgb(), cam,
-                                  depth=True)
-            alpha = out.alpha.numpy()
-            rgb = out.features.numpy() / np.maximum(alpha, 1e-6)[..., None]
-            depth = np.where(alpha > 0.5, out.depth.numpy() / np.maximum(alpha, 1e-6), 0.0)
-            out_views.append(TrainView.from_view(View(
-                f"v{i}", cam, np.clip(rgb, 0, 1).astype(np.float32), alpha.astype(np.float32),
-                depth.astype(np.float32))))
-    return out_views
-
-
-def rot_z(deg: float) -> np.ndarray:
-    a = math.radians(deg)
-    return np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    return grid_gaussians([(wall, 0), (plank, 1)])
 
 
 def scoring_case(tune_steps: int) -> tuple[Refine, list]:

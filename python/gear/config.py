@@ -53,6 +53,9 @@ class TrainConfig:
     # contains its slide (docs/method.md, "Joint types").
     small_hinge_margin: float = 0.01
     em_refine_joint_iterations: int = 10_000  # em-refine: joint optimisation before EM starts
+    # [beyond] at joint_classify_iteration, a part that another part's motion (or staying put)
+    # explains about as well as its own joins that part (docs/method.md, "Parts read twice")
+    merge_redundant_parts: bool = True
 
     # --- Table S1: loss weights ---
     lambda_dssim: float = 0.2

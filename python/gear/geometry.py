@@ -221,6 +221,26 @@ class VoxelGrid:
         return tuple(self.origin.tolist()), self.voxel_size, self.shape
 
 
+def share_in_line(points: np.ndarray, other: np.ndarray, direction: np.ndarray,
+                  margin: float, trim: float = 0.0) -> float:
+    """The share of ``points`` [N, 3] that fall, seen along ``direction``, inside the box
+    bounding ``other`` [M, 3] across it, grown by ``margin`` on every side: how much of one set
+    lies in line with the other along a slide (e.g. a drawer's front and back, not two drawers
+    of a column pulled by the same travel). With ``trim`` > 0 the box spans the ``trim`` to
+    1 - ``trim`` quantiles of ``other`` across the slide, so a few strays do not stretch it.
+    0 for empty ``points`` or ``other``."""
+    points, other = np.asarray(points, np.float64), np.asarray(other, np.float64)
+    if len(points) == 0 or len(other) == 0:
+        return 0.0
+    direction = np.asarray(direction, dtype=np.float64)
+    direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
+    across = np.linalg.svd(direction[None, :])[2][1:]  # two unit vectors normal to it
+    own, section = points @ across.T, other @ across.T
+    lo = np.quantile(section, trim, axis=0) - margin
+    hi = np.quantile(section, 1.0 - trim, axis=0) + margin
+    return float(np.all((own >= lo) & (own <= hi), axis=1).mean())
+
+
 def voxel_grid(
     point_sets: Sequence[np.ndarray],
     voxel_size: float,

@@ -161,14 +161,8 @@ def _in_line(cells: np.ndarray, part_cells: np.ndarray, motion: Hypothesis) -> b
     sparse model leaves holes in a drawer's front.) Turns always pass."""
     if motion.kind != "slide":
         return True
-    direction = np.asarray(motion.trans, dtype=np.float64)
-    direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
-    across = np.linalg.svd(direction[None, :])[2][1:]  # two unit vectors normal to it
-    own = cells @ across.T
-    section = part_cells @ across.T
-    lo, hi = section.min(0) - IN_LINE_MARGIN, section.max(0) + IN_LINE_MARGIN
-    inside = np.all((own >= lo) & (own <= hi), axis=1)
-    return float(inside.mean()) >= IN_LINE_SHARE
+    share = geometry.share_in_line(cells, part_cells, motion.trans, IN_LINE_MARGIN)
+    return share >= IN_LINE_SHARE
 
 
 @dataclass

@@ -47,6 +47,7 @@ def classify(state: RefineState) -> None:
         init_motions=state.init_motions if resolve and state.init_motions else None,
         small_hinge_margin=c.small_hinge_margin,
         hinge_reach=(center, HINGE_REACH * object_radius(state.gaussians, center)),
+        parts=state.live_parts(),
     )
     qr, _ = state.motion.motion()
     angles = [round(math.degrees(float(a)), 3) for a in quat_angle(qr.detach())[1:]]
@@ -64,6 +65,12 @@ def motion_loss(state: RefineState, candidate: PartMotion) -> float:
     images once it has had the same short chance to settle as every other one. No ground
     truth is involved. `candidate` is the caller's copy and is tuned in place."""
     tune_motion(state, candidate, state.config.classify_tune_steps)
+    return image_loss(state, candidate)
+
+
+def image_loss(state: RefineState, candidate: PartMotion) -> float:
+    """Photometric + depth loss of the hard-assigned model of `state` moved by `candidate` as
+    it is, over the scoring views on a black background."""
     views = state.scoring_views()
     black = [torch.zeros(3)] * len(views)
     with torch.no_grad():
@@ -123,6 +130,7 @@ def classify_joints(
     init_motions: Sequence[Sequence[Motion]] | None = None,
     small_hinge_margin: float = 0.0,
     hinge_reach: tuple[np.ndarray, float] | None = None,
+    parts: Sequence[int] | None = None,
 ) -> list[int]:
     """Turns revolute parts whose rotation is below `eps_deg` into prismatic ones.
 
@@ -140,8 +148,9 @@ def classify_joints(
     of a quick model barely resolve (a real fridge); the images, not noise, must overturn
     what training found. With `hinge_reach` (centre, radius), a hinge below `eps_deg` whose
     axis passes farther than radius from centre is typed prismatic by the rule alone, unscored
-    (see HINGE_REACH). Returns the parts made prismatic; the caller rebuilds the optimizer
-    state of `motion`.
+    (see HINGE_REACH). Only the movable `parts` are decided (default: all; a part merged into
+    another has no Gaussians left to judge it by). Returns the parts made prismatic; the
+    caller rebuilds the optimizer state of `motion`.
     """
     if init_motions is not None and len(init_motions) != motion.num_parts - 1:
         raise ValueError(
@@ -152,7 +161,7 @@ def classify_joints(
     angles = quat_angle(qr.detach())
     eps = math.radians(eps_deg)
     switched = []
-    for k in range(1, motion.num_parts):
+    for k in range(1, motion.num_parts) if parts is None else parts:
         if bool(motion.prismatic[k]):
             continue
         small = float(angles[k]) < eps

@@ -10,22 +10,25 @@ from gear.kinematics import dq_conj
 from gear.splats import Gaussians
 
 
-def _solid_means(g: Gaussians) -> torch.Tensor:
-    """Centres of the opaque Gaussians (all of them when fewer than 4 are opaque)."""
+def solid_means(g: Gaussians, among: torch.Tensor | None = None) -> torch.Tensor:
+    """Centres of the opaque Gaussians (of those in the bool mask `among`, if given; all of
+    them when fewer than 4 are opaque)."""
     means = g["means"].detach()
     solid = torch.sigmoid(g["opacity"].detach()) > 0.5
+    if among is not None:
+        means, solid = means[among], solid[among]
     return means[solid] if int(solid.sum()) >= 4 else means
 
 
 def object_center(g: Gaussians) -> np.ndarray:
     """Centre of the opaque Gaussians (joint origins are reported nearest to it)."""
-    return _solid_means(g).mean(dim=0).numpy().astype(np.float64)
+    return solid_means(g).mean(dim=0).numpy().astype(np.float64)
 
 
 def object_radius(g: Gaussians, center: np.ndarray) -> float:
     """How far the opaque Gaussians reach from `center` (99th percentile of their distances,
     so that a few floaters do not count)."""
-    pts = _solid_means(g)
+    pts = solid_means(g)
     if len(pts) == 0:
         return 0.0
     dist = (pts - torch.as_tensor(center, dtype=pts.dtype)).norm(dim=1)

@@ -17,6 +17,7 @@ from gear.pipeline.stage2 import Stage2Result
 from gear.pipeline.stage3.estep import gaussian_step
 from gear.pipeline.stage3.joint_types import classify
 from gear.pipeline.stage3.joints import object_center, start_to_end_joints
+from gear.pipeline.stage3.merge import merge_parts
 from gear.pipeline.stage3.mstep import motion_step
 from gear.pipeline.stage3.shared import RefineState
 from gear.splats import Gaussians
@@ -56,6 +57,10 @@ class Refine(RefineState):
     def step(self, it: int) -> dict[str, float]:
         phase = self.phase(it)
         if it == self.config.joint_classify_iteration:
+            if self.config.merge_redundant_parts:
+                merged = merge_parts(self)
+                self.events.append({"event": "part_merge",
+                                    "merges": [m.record() for m in merged]})
             classify(self)
         terms = motion_step(self, it) if phase == "M" else gaussian_step(self, it, phase)
         self.maintain(it)

@@ -172,6 +172,11 @@ class RefineState(Stage):
                 terms[name] = terms.get(name, 0.0) + value / len(views)
         return terms
 
+    def live_parts(self) -> list[int]:
+        """The movable parts some Gaussian belongs to (argmax of its logits)."""
+        counts = torch.bincount(self.gaussians.part_ids(), minlength=self.motion.num_parts)
+        return [k for k in range(1, self.motion.num_parts) if int(counts[k]) > 0]
+
     def held(self) -> HeldModel:
         """The held model of the current Gaussians (rebuilt only after they changed)."""
         if self._held is None or self._held.key != held_key(self.gaussians):

@@ -1,0 +1,116 @@
+"""Stage 3's merging of parts read twice: a movable part whose Gaussians another part's motion,
+or staying put, moves onto the target images about as well as its own motion is not a part of
+its own (a fragment of a blade or of a lid that stage 2 gave a motion of its own); its
+Gaussians join the other part (docs/method.md, "Parts read twice")."""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import torch
+
+from gear import geometry
+from gear.articulation import PartMotion
+from gear.kinematics import dq_to_rt, quat_angle
+from gear.pipeline.stage2.parts import IN_LINE_SHARE
+from gear.pipeline.stage3.joint_types import image_loss
+from gear.pipeline.stage3.joints import object_center, object_radius, solid_means
+from gear.pipeline.stage3.shared import RefineState
+
+# A part merges when another motion costs it at most this share of what its own motion gains
+# over staying put (both in the image loss of the target views).
+MERGE_SHARE = 0.1
+# A part joins a sliding part only in line with it (as in stage 2): the box bounding the
+# slide's part across the slide spans the 2nd-98th percentiles of its centres (a stray Gaussian
+# does not stretch it) grown by this share of the object's radius.
+IN_LINE_MARGIN_RADII = 0.06
+IN_LINE_TRIM = 0.02
+# How far below a Gaussian's lowest logit a merged part's logit is set: its soft weight (e^-20)
+# and the gradient it would draw are nil, so the E-step does not regrow the part.
+FORGET_LOGIT = 20.0
+
+
+@dataclass(frozen=True)
+class Merge:
+    """Part `part` joined part `into` (0: the static part). `gain`: how much lower the image
+    loss is with the part moving by its own motion than staying put; `cost`: how much higher
+    it is with the part moving by `into`'s motion instead of its own."""
+
+    part: int
+    into: int
+    gain: float
+    cost: float
+
+    def record(self) -> dict:
+        return {"part": self.part, "into": self.into, "gain": self.gain, "cost": self.cost}
+
+
+def merge_parts(state: RefineState) -> list[Merge]:
+    """Merges, one at a time and smallest part first, every movable part of `state` that
+    another part's motion (or the identity) explains within MERGE_SHARE of what its own
+    explains, and that lies in line with that part when it slides. A merged part keeps its
+    column of logits and its motion (set to the other part's) but no Gaussian: the run's
+    outputs drop it. Returns the merges in the order made."""
+    merges = []
+    while (merge := _next_merge(state)) is not None:
+        _apply(state, merge)
+        merges.append(merge)
+    return merges
+
+
+def _next_merge(state: RefineState) -> Merge | None:
+    ids = state.gaussians.part_ids()
+    counts = torch.bincount(ids, minlength=state.motion.num_parts).tolist()
+    live = state.live_parts()
+    base = image_loss(state, state.motion)
+    for k in sorted(live, key=lambda k: (counts[k], k)):
+        costs = {j: image_loss(state, moved_like(state.motion, k, j)) - base
+                 for j in [0, *live] if j != k}
+        gain = costs[0]
+        for into in sorted(costs, key=lambda j: (costs[j], j)):
+            if costs[into] > MERGE_SHARE * max(gain, 0.0):
+                break
+            if into == 0 or _in_line(state, ids, k, into):
+                return Merge(k, into, gain, costs[into])
+    return None
+
+
+def moved_like(motion: PartMotion, k: int, j: int) -> PartMotion:
+    """A copy of `motion` with part k moved by part j's motion (the identity for j = 0)."""
+    qr, qd = motion.motion()
+    out = copy.deepcopy(motion)
+    out.set_part(k, qr[j].detach(), qd[j].detach(), prismatic=bool(motion.prismatic[j]))
+    return out
+
+
+def _in_line(state: RefineState, ids: torch.Tensor, k: int, j: int) -> bool:
+    """Whether part k may join part j: always when j turns (by ε or more), else when at least
+    IN_LINE_SHARE of k's opaque centres lie in line with j's along j's slide. Two drawers of
+    a column pulled by the same travel are explained by one motion but are two parts."""
+    qr, qd = state.motion.motion()
+    if float(quat_angle(qr[j].detach())) >= math.radians(state.config.revolute_eps_deg):
+        return True
+    g = state.gaussians
+    direction = dq_to_rt(qr[j].detach(), qd[j].detach())[1].numpy()
+    margin = IN_LINE_MARGIN_RADII * object_radius(g, object_center(g))
+    share = geometry.share_in_line(solid_means(g, ids == k).numpy(),
+                                   solid_means(g, ids == j).numpy(), direction, margin,
+                                   trim=IN_LINE_TRIM)
+    return share >= IN_LINE_SHARE
+
+
+@torch.no_grad()
+def _apply(state: RefineState, merge: Merge) -> None:
+    """Part `merge.part`'s Gaussians go to `merge.into` (their two logits swapped, so each
+    keeps its confidence); its logit is then set FORGET_LOGIT below every Gaussian's lowest,
+    and its motion to `merge.into`'s."""
+    k, j = merge.part, merge.into
+    logits = state.gaussians["logits"]
+    rows = logits.argmax(dim=1) == k
+    mine, theirs = logits[rows, k].clone(), logits[rows, j].clone()
+    logits[rows, j], logits[rows, k] = mine, theirs
+    logits[:, k] = logits.min(dim=1).values - FORGET_LOGIT
+    qr, qd = state.motion.motion()
+    state.motion.set_part(k, qr[j], qd[j], prismatic=bool(state.motion.prismatic[j]))

@@ -1,0 +1,155 @@
+"""Stage 3's merging of parts read twice (pipeline.stage3.merge): a part that another part's
+motion, or staying put, explains about as well as its own joins it; distinct parts, and two
+drawers pulled by the same travel, stay apart. Rendered with the deterministic torch
+reference on tiny scenes: a static back wall (part 0) and planks in front of it."""
+
+import numpy as np
+import pytest
+import torch
+
+from gear import geometry
+from gear.articulation import PartMotion
+from gear.config import make_config
+from gear.outputs import drop_empty_parts
+from gear.pipeline.stage3 import Refine, merge
+from gear.pipeline.stage3.joint_types import image_loss
+from gear.pipeline.stage3.merge import FORGET_LOGIT, merge_parts, moved_like
+from gear.splat_reference import rasterize_dense
+from gear.splats import rendering
+from stage3_scenes import OFFSET, grid_gaussians, rot_z, views_of
+
+PULL = np.array([0.0, -0.25, 0.0])
+HINGE = np.array([-0.3, -0.1, 0.0])  # the door's left edge (before OFFSET)
+
+
+@pytest.fixture(autouse=True)
+def torch_renderer(monkeypatch):
+    monkeypatch.setattr(rendering, "rasterizer", lambda: rasterize_dense)
+
+
+def wall() -> torch.Tensor:
+    wx, wz = torch.meshgrid(torch.linspace(-0.4, 0.4, 4), torch.linspace(-0.3, 0.3, 3),
+                            indexing="ij")
+    return torch.stack([wx.flatten(), torch.full((12,), 0.15), wz.flatten()], 1)
+
+
+def plank(x0: float, x1: float, z: float = 0.0, columns: int = 3) -> torch.Tensor:
+    px, pz = torch.meshgrid(torch.linspace(x0, x1, columns), torch.tensor([z - 0.05, z + 0.05]),
+                            indexing="ij")
+    return torch.stack([px.flatten(), torch.full((2 * columns,), -0.1), pz.flatten()], 1)
+
+
+def hinge(deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of a turn by `deg` about the vertical line through the door's left edge."""
+    rot, pivot = rot_z(deg), HINGE + OFFSET
+    return rot, pivot - rot @ pivot
+
+
+def stage(blocks, true_motions, trained_motions, **config) -> Refine:
+    """A stage-3 state whose target views show the parts moved by `true_motions` and whose
+    part motions are `trained_motions` (canonical -> target, one (R, t) per movable part)."""
+    g = grid_gaussians(blocks)
+    canonical = views_of(g, PartMotion(g.num_parts))
+    target = views_of(g, PartMotion.from_rt(true_motions))
+    cfg = make_config("quick", dict(em_interval=2, stage3_densify_until=0, **config))
+    return Refine(g, PartMotion.from_rt(trained_motions), g.clone(), canonical, target, cfg,
+                  seed=0)
+
+
+def door_in_halves(second_half_deg: float) -> Refine:
+    """A door turned 40° read as two parts: its larger left side (part 1) with the true turn,
+    its right side (part 2, the smaller: it is judged first) with a turn of `second_half_deg`
+    about the same hinge."""
+    blocks = [(wall(), 0), (plank(-0.3, 0.0), 1), (plank(0.12, 0.3, columns=2), 2)]
+    return stage(blocks, [hinge(40), hinge(40)], [hinge(40), hinge(second_half_deg)])
+
+
+@pytest.mark.parametrize("second_half_deg", [40.0, 34.0])
+def test_a_part_read_twice_joins_the_part(second_half_deg):
+    s = door_in_halves(second_half_deg)
+    right_half = s.gaussians.part_ids() == 2
+    merges = merge_parts(s)
+    assert [(m.part, m.into) for m in merges] == [(2, 1)]
+    assert merges[0].cost <= merge.MERGE_SHARE * merges[0].gain
+    ids = s.gaussians.part_ids()
+    assert bool((ids[right_half] == 1).all()) and s.live_parts() == [1]
+    logits = s.gaussians["logits"].detach()
+    others = torch.cat([logits[:, :2], logits[:, 3:]], dim=1)
+    assert bool((logits[:, 2] <= others.min(dim=1).values - FORGET_LOGIT + 1e-4).all())
+    qr, qd = s.motion.motion()
+    assert torch.allclose(qr[2], qr[1]) and torch.allclose(qd[2], qd[1])
+    assert merge_parts(s) == []  # nothing left to merge
+
+
+def test_distinct_parts_stay():
+    """A door and a drawer: neither's motion explains the other, nor does staying put."""
+    blocks = [(wall(), 0), (plank(-0.3, 0.0), 1), (plank(0.1, 0.3, z=-0.25), 2)]
+    truth = [hinge(40), (np.eye(3), PULL)]
+    s = stage(blocks, truth, truth)
+    before = s.gaussians["logits"].detach().clone()
+    assert merge_parts(s) == []
+    assert torch.equal(s.gaussians["logits"].detach(), before)
+
+
+def test_two_drawers_pulled_alike_stay_two_parts(monkeypatch):
+    """Two drawers of a column (one above the other) pulled by the same travel: one motion
+    explains both, but the lower one is not in line with the upper along the slide."""
+    blocks = [(wall(), 0), (plank(-0.2, 0.2, z=0.15), 1), (plank(-0.2, 0.2, z=-0.15), 2)]
+    slide = (np.eye(3), PULL)
+    s = stage(blocks, [slide, slide], [slide, slide])
+    base = image_loss(s, s.motion)
+    assert image_loss(s, moved_like(s.motion, 2, 1)) - base == pytest.approx(0.0, abs=1e-6)
+    assert merge_parts(s) == []
+    monkeypatch.setattr(merge, "IN_LINE_SHARE", 0.0)  # the in-line test is what keeps them
+    assert [(m.part, m.into) for m in merge_parts(s)] == [(1, 2)]
+
+
+def test_a_part_its_own_motion_does_not_explain_joins_the_static_part():
+    """A column of the wall read as a part with a small spurious shift: staying put explains
+    its Gaussians better than its own motion does."""
+    w = wall()
+    blocks = [(w[:9], 0), (plank(-0.3, 0.3), 1), (w[9:], 2)]
+    s = stage(blocks, [hinge(40), (np.eye(3), np.zeros(3))],
+              [hinge(40), (np.eye(3), np.array([0.0, 0.0, 0.08]))])
+    merges = merge_parts(s)
+    assert [(m.part, m.into) for m in merges] == [(2, 0)] and merges[0].gain < 0
+    assert s.live_parts() == [1]
+
+
+def test_merge_at_classification_then_dropped_from_the_outputs():
+    s = door_in_halves(34.0)
+    s.config.joint_classify_iteration = 2  # an M-step iteration (em_interval 2)
+    terms = s.step(2)
+    assert all(torch.isfinite(torch.as_tensor(v)).all() for v in terms.values())
+    event = next(e for e in s.events if e.get("event") == "part_merge")
+    assert [(m["part"], m["into"]) for m in event["merges"]] == [(2, 1)]
+    classified = next(e for e in s.events if e.get("event") == "joint_classification")
+    assert len(classified["types"]) == 2  # one per movable part; the merged one is not judged
+    g, motion, dropped = drop_empty_parts(s.gaussians, s.motion)
+    assert dropped == [2] and motion.num_parts == 2 and g.num_parts == 2
+
+
+def test_merging_can_be_turned_off():
+    s = door_in_halves(34.0)
+    s.config.joint_classify_iteration = 2
+    s.config.merge_redundant_parts = False
+    s.step(2)
+    assert not any(e.get("event") == "part_merge" for e in s.events)
+    assert s.live_parts() == [1, 2]
+
+
+def test_share_in_line():
+    other = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 1.0], [0.5, 5.0, 0.5]])
+    along_y = np.array([0.0, 2.0, 0.0])
+    inside = np.array([[0.5, -3.0, 0.5], [0.9, 9.0, 0.1]])  # anywhere along y
+    outside = np.array([[1.5, 0.0, 0.5], [0.5, 0.0, -0.5]])
+    assert geometry.share_in_line(inside, other, along_y, 0.0) == 1.0
+    assert geometry.share_in_line(outside, other, along_y, 0.0) == 0.0
+    assert geometry.share_in_line(np.vstack([inside, outside]), other, along_y, 0.0) == 0.5
+    assert geometry.share_in_line(outside, other, along_y, 0.6) == 1.0  # grown by the margin
+    assert geometry.share_in_line(outside[:0], other, along_y, 0.0) == 0.0
+    # a stray point stretches the box unless trimmed
+    strays = np.vstack([np.full((98, 3), 0.5), [[9.0, 0.0, 9.0]], [[0.0, 0.0, 0.0]]])
+    far = np.array([[5.0, 0.0, 5.0]])
+    assert geometry.share_in_line(far, strays, along_y, 0.0) == 1.0
+    assert geometry.share_in_line(far, strays, along_y, 0.1, trim=0.02) == 0.0
