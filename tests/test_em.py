@@ -142,6 +142,16 @@ def test_classify_joints_threshold_rule():
     assert classify_joints(motion, eps_deg=10.0) == []
 
 
+def test_classify_joints_decides_only_the_parts_asked():
+    """A part merged into another has no Gaussians to judge it by: only `parts` are decided."""
+    small = [hinge([0, 0, 1], [1, 0, 0], 5.0), hinge([0, 1, 0], [0, 0, 1], 3.0)]
+    motion = PartMotion.from_rt(small)
+    assert classify_joints(motion, eps_deg=10.0, parts=[2]) == [2]
+    assert motion.prismatic.tolist() == [False, False, True]
+    assert classify_joints(motion, eps_deg=10.0, parts=[]) == []
+    assert motion.prismatic.tolist() == [False, False, True]
+
+
 def test_classify_joints_scores_ambiguous_hinges():
     """A door truly opened 175 degrees whose optimisation stalled at 3 degrees: the threshold
     alone would call it prismatic; scoring the stage-2 initial motion keeps it a hinge."""
