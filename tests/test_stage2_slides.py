@@ -7,9 +7,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gear.pipeline.stage2.parts import coarse_init
+from gear.pipeline.stage2.hypotheses import Hypothesis
+from gear.pipeline.stage2.parts import _first_on_free_matter, coarse_init
 from gear.pipeline.stage2.voxels import split_static_dynamic
-from test_coarse import FRONT, box_surface
+from test_coarse import FRONT, box_surface, hinge_motion
 
 VOXEL = 0.025
 PUSH = np.array([0.0, 0.3, 0.0])  # the true motion: the drawer pushed in along +y
@@ -83,3 +84,39 @@ def test_drawers_of_one_column_with_one_travel_stay_two_parts():
         want = np.array([0.0, -0.35, 0.0]) * (1 if result.canonical == "start" else -1)
         assert np.allclose(rot, np.eye(3), atol=1e-6)
         assert np.linalg.norm(trans - want) < 1.5 * result.voxel_size, (trans, result.notes)
+
+
+def mirrored_fronts(seed=0):
+    """Two drawer fronts side by side (x in [-0.5, -0.1] and [0.1, 0.5]), pulled 0.1 out
+    (-y) in the canonical state and pushed in (y = 0) in the target, before a static back
+    wall. A half turn about the vertical line x = 0, y = -0.05 puts the right front exactly
+    where the left one ends: it lands as well as the right front's own slide."""
+    rng = np.random.default_rng(seed)
+
+    def front(x0, y, n=2500):
+        return box_surface([x0, y - 0.02, 0.0], [x0 + 0.4, y, 0.3], n, rng)
+
+    wall = box_surface([-0.6, 0.3, -0.1], [0.6, 0.32, 0.4], 4000, rng)
+    canon = [front(-0.5, -0.1), front(0.1, -0.1)]
+    target = np.concatenate([front(-0.5, 0.0), front(0.1, 0.0), wall])
+    split = split_static_dynamic(np.concatenate([*canon, wall]), target, VOXEL, 1)
+    return split, [split.grid.voxel_of(c) for c in canon]
+
+
+def test_a_hinge_that_lands_only_on_claimed_matter_goes_behind_the_slide():
+    split, (left, right) = mirrored_fronts()
+    slide = np.array([0.0, 0.1, 0.0])
+    rot, trans = hinge_motion([0, 0, 1], [0.0, -0.05, 0.0], 180.0)
+    fold = split.score(right, "hinge", rot, trans)
+    pull = split.score(right, "slide", np.eye(3), slide)
+    assert fold.landed >= pull.landed - 0.1  # a near-tie on all the target's matter
+    hyps = [fold, pull]
+    nothing = np.zeros(split.grid.shape, dtype=bool)
+    assert _first_on_free_matter(split, nothing, right, hyps) == (hyps, None)
+    # The left front, a part already, lands where the fold puts the right one.
+    claimed = split.landing_cells(left, Hypothesis("slide", np.eye(3), slide))
+    ordered, free = _first_on_free_matter(split, claimed, right, hyps)
+    assert ordered == [pull, fold] and free is not None and free < 0.2
+    # A hinge that lands on free matter keeps its place.
+    other = split.landing_cells(left, Hypothesis("slide", np.eye(3), -slide))
+    assert _first_on_free_matter(split, other, right, hyps) == (hyps, None)

@@ -5,7 +5,7 @@ that grid (docs/method.md, "Stage 2")."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.ndimage import maximum_filter
@@ -133,6 +133,22 @@ class VoxelSplit:
         c = cells[inside]
         out[inside] = self.occ_target[c[:, 0], c[:, 1], c[:, 2]]
         return out
+
+    def landing_cells(self, src_cells: np.ndarray, motion: Hypothesis) -> np.ndarray:
+        """The target cells (a grid mask, grown by one voxel like the target's occupancy) that
+        `src_cells` [M, 3] moved by `motion` fall in."""
+        moved = self.grid.centres(src_cells) @ np.asarray(motion.rot).T + motion.trans
+        cells = self.grid.voxel_of(moved)
+        cells = cells[np.all((cells >= 0) & (cells < np.array(self.grid.shape)), axis=1)]
+        out = np.zeros(self.grid.shape, dtype=bool)
+        out[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+        return np.asarray(geometry.dilate(out, 1))
+
+    def without(self, claimed: np.ndarray) -> VoxelSplit:
+        """This split with the target cells `claimed` (a grid mask) taken out of the target's
+        occupancy: what is left for a further part to land on."""
+        return replace(self, exact_target=self.exact_target & ~claimed,
+                       occ_target=self.occ_target & ~claimed)
 
     def surface_fit(self, points: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> float:
         """How closely `points` moved by p -> R p + t lie on the target's centres: the mean of
