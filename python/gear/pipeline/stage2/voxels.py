@@ -110,13 +110,20 @@ class VoxelSplit:
     on_surface: SurfaceTest | None = None
     surface_tolerance: float = 0.0
 
+    def _moved(self, src_cells: np.ndarray, rot: np.ndarray,
+               trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The grid cells of `src_cells` [M, 3] moved by p -> R p + t, and which of them lie
+        inside the grid."""
+        moved = self.grid.centres(src_cells) @ np.asarray(rot).T + np.asarray(trans)
+        cells = self.grid.voxel_of(moved)
+        return cells, np.all((cells >= 0) & (cells < np.array(self.grid.shape)), axis=1)
+
     def score(
         self, src_cells: np.ndarray, kind: str, rot: np.ndarray, trans: np.ndarray
     ) -> Hypothesis:
         """The Hypothesis of moving `src_cells` by p -> R p + t (see Hypothesis)."""
-        moved = self.grid.centres(src_cells) @ np.asarray(rot).T + np.asarray(trans)
-        cells = self.grid.voxel_of(moved)
-        cells = cells[np.all((cells >= 0) & (cells < np.array(self.grid.shape)), axis=1)]
+        cells, inside = self._moved(src_cells, rot, trans)
+        cells = cells[inside]
         landed = self.occ_target[cells[:, 0], cells[:, 1], cells[:, 2]]
         hit = cells[self.dyn_target[cells[:, 0], cells[:, 1], cells[:, 2]]]
         explained = len(np.unique(hit, axis=0)) / max(
@@ -126,9 +133,7 @@ class VoxelSplit:
 
     def landing(self, src_cells: np.ndarray, motion: Hypothesis) -> np.ndarray:
         """Which of `src_cells` [M, 3] `motion` lands on target matter (within one voxel)."""
-        moved = self.grid.centres(src_cells) @ np.asarray(motion.rot).T + motion.trans
-        cells = self.grid.voxel_of(moved)
-        inside = np.all((cells >= 0) & (cells < np.array(self.grid.shape)), axis=1)
+        cells, inside = self._moved(src_cells, motion.rot, motion.trans)
         out = np.zeros(len(src_cells), dtype=bool)
         c = cells[inside]
         out[inside] = self.occ_target[c[:, 0], c[:, 1], c[:, 2]]
@@ -137,9 +142,8 @@ class VoxelSplit:
     def landing_cells(self, src_cells: np.ndarray, motion: Hypothesis) -> np.ndarray:
         """The target cells (a grid mask, grown by one voxel like the target's occupancy) that
         `src_cells` [M, 3] moved by `motion` fall in."""
-        moved = self.grid.centres(src_cells) @ np.asarray(motion.rot).T + motion.trans
-        cells = self.grid.voxel_of(moved)
-        cells = cells[np.all((cells >= 0) & (cells < np.array(self.grid.shape)), axis=1)]
+        cells, inside = self._moved(src_cells, motion.rot, motion.trans)
+        cells = cells[inside]
         out = np.zeros(self.grid.shape, dtype=bool)
         out[cells[:, 0], cells[:, 1], cells[:, 2]] = True
         return np.asarray(geometry.dilate(out, 1))
