@@ -383,3 +383,57 @@ def test_suite_run_loop_renders_and_records_structure(tmp_path, monkeypatch):
     scene = load_scene(out / "accuracy_runs" / "scenes" / "lidbox-hinge-r24-v2")
     assert len(scene.gt.joints) == 1 and scene.gt.joints[0].amount < 0  # towards -1.5
     assert "| lidbox-hinge | quick | 2 / 2 | 1R / 1R |" in (out / "accuracy.md").read_text()
+
+
+def test_append_resumes_an_interrupted_run_and_replaces_a_foreign_one(tmp_path, monkeypatch):
+    # Stand-in trainer: which folders were resumed and which started over. An interrupted run
+    # (a checkpoint, no completion marker) continues under --append, never loses its
+    # checkpoint; a checkpoint of another configuration is replaced; without --append every
+    # run starts over.
+    import gear.bench.accuracy as accuracy
+    import gear.evaluate as eval_cmd
+    import gear.train as train_mod
+    from gear.run_folder import RunFolderError
+
+    scene = tmp_path / "my_scene"
+    scene.mkdir()
+    out = tmp_path / "bench"
+    outputs = out / "accuracy_runs" / "outputs"
+    calls = []
+
+    def fake_train(scene_dir, out_dir, config, resume=False, overwrite=False, quiet=False):
+        calls.append((out_dir.name, "resume" if resume else "overwrite"))
+        assert resume != overwrite
+        if resume and out_dir.name.endswith("-200-default"):
+            raise RunFolderError("--resume: the options differ from the saved run's (seed)")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        return train_mod.TrainResult([], "start", {"stage1": 1.0})
+
+    monkeypatch.setattr(train_mod, "train", fake_train)
+    monkeypatch.setattr(eval_cmd, "evaluate", lambda out_dir, scene_dir: {"axis_ang": 1.0})
+    monkeypatch.setattr(accuracy, "machine_description", lambda: "test machine")
+    for budget in ("100", "200"):  # two interrupted runs
+        (outputs / f"my_scene-{budget}-default" / "checkpoints").mkdir(parents=True)
+        (outputs / f"my_scene-{budget}-default" / "checkpoints" / "last.pt").write_bytes(b"x")
+    finished = outputs / "my_scene-300-default"  # a finished run is never resumed
+    (finished / "checkpoints").mkdir(parents=True)
+    (finished / "checkpoints" / "last.pt").write_bytes(b"x")
+    (finished / "complete.json").write_text("{}")
+
+    args = ["bench", "accuracy", "--scenes", str(scene), "--profiles", "100,200,300,400",
+            "--out", str(out)]
+    assert main([*args, "--append"]) == 0
+    assert calls == [
+        ("my_scene-100-default", "resume"),
+        ("my_scene-200-default", "resume"),  # another configuration's checkpoint ...
+        ("my_scene-200-default", "overwrite"),  # ... is replaced
+        ("my_scene-300-default", "overwrite"),
+        ("my_scene-400-default", "overwrite"),
+    ]
+    rows = list(csv.DictReader(open(out / "accuracy.csv")))
+    assert [(r["budget"], r["status"]) for r in rows] == [
+        ("100", "ok"), ("200", "ok"), ("300", "ok"), ("400", "ok")]
+
+    calls.clear()
+    assert main(args) == 0  # without --append: every run starts over
+    assert [mode for _, mode in calls] == ["overwrite"] * 4

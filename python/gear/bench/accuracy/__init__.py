@@ -82,8 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder for accuracy.csv/.md/.png (default ./bench, ./bench/real "
                         "with --suite real)")
     parser.add_argument("--append", action="store_true",
-                        help="keep the runs already in OUT/accuracy.csv and skip those that "
-                        "finished ok (extend or resume a long benchmark)")
+                        help="keep the runs already in OUT/accuracy.csv, skip those that "
+                        "finished ok and resume those interrupted from their checkpoints "
+                        "(extend or continue a long benchmark)")
     parser.add_argument("--work", type=Path, default=None,
                         help="folder for generated scenes and training outputs "
                         "(default OUT/accuracy_runs)")
@@ -156,11 +157,13 @@ def _scene_dir(name: str, effects: tuple[str, ...], work: Path, args: argparse.N
 
 
 def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: dict[str, Any],
-            out_dir: Path, seed: int, fixed: dict[str, Any] | None = None) -> Run:
+            out_dir: Path, seed: int, fixed: dict[str, Any] | None = None,
+            resume: bool = False) -> Run:
     """Train and score one configuration; failures are recorded, not raised. `fixed` fields
-    (--config) apply to the budget as given, the variant's `overrides` after them."""
+    (--config) apply to the budget as given, the variant's `overrides` after them. With
+    `resume`, an interrupted run of the same configuration in `out_dir` continues from its
+    checkpoint."""
     from gear.evaluate import evaluate
-    from gear.train import train
 
     config, iterations = budget_config(budget, seed)
     config = config.replace(**(fixed or {})).replace(**overrides)
@@ -169,8 +172,7 @@ def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: d
     record = Run(scene, budget, variant, iterations)
     try:
         t0, cpu0 = time.perf_counter(), time.process_time()
-        # A re-run of the benchmark replaces that configuration's earlier run.
-        result = train(scene_dir, out_dir, config, overwrite=True, quiet=True)
+        result = train_or_resume(scene_dir, Path(out_dir), config, resume)
         record.cpu_seconds = time.process_time() - cpu0
         record.timings = dict(result.timings) or {"total": time.perf_counter() - t0}
         metrics = evaluate(out_dir, scene_dir)
@@ -183,6 +185,23 @@ def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: d
     record.type_mismatches = int(metrics.get("type_mismatches") or 0)
     record_structure(record, Path(out_dir), Path(scene_dir))
     return record
+
+
+def train_or_resume(scene_dir: Path, out_dir: Path, config: Any, resume: bool) -> Any:
+    """Trains `config` into `out_dir`, replacing an earlier run there; with `resume`, an
+    interrupted run there (a checkpoint, no completion marker) continues instead, unless its
+    checkpoint belongs to another scene or configuration (then it is replaced, and said)."""
+    from gear.checkpoint import LAST
+    from gear.run_folder import COMPLETE, RunFolderError
+    from gear.train import train
+
+    interrupted = (out_dir / "checkpoints" / LAST).is_file() and not (out_dir / COMPLETE).exists()
+    if resume and interrupted:
+        try:
+            return train(scene_dir, out_dir, config, resume=True, quiet=True)
+        except RunFolderError as err:
+            print(f"not resumed ({err}); starting over: ", end="", flush=True)
+    return train(scene_dir, out_dir, config, overwrite=True, quiet=True)
 
 
 def record_structure(record: Run, out_dir: Path, scene_dir: Path) -> None:
@@ -292,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
                 else:
                     out_dir = work / "outputs" / f"{name}-{budget}-{variant}"
                     record = run_one(name, scene_dir, budget, variant, overrides, out_dir,
-                                     args.seed, fixed)
+                                     args.seed, fixed, resume=args.append)
                 records.append(record)
                 print(f"{record.status}, {record.total_seconds:.1f} s", flush=True)
                 # Table and CSV after every run, so a long benchmark can be read as it goes.
