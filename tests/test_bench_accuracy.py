@@ -312,20 +312,24 @@ def test_suite_table_and_plot_show_structure_per_object(tmp_path):
             types_true=type_counts(["rotate"]), types_found=type_counts(["revolute"] * 2)),
         Run("cabinet_tall", "quick", iterations=300, timings={"stage1": 90.0},
             metrics={"axis_ang": 0.5, "geo_dist_m": 0.01, "part_iou": 0.8}, parts_true=3,
-            parts_found=3, types_true="1R+1P", types_found="1R+1P"),
+            parts_found=3, types_true="1R+1P", types_found="1R+1P",
+            part_motion_px=[8.64, 0.14]),
         Run("fridge", "quick", iterations=300, status="failed: stage 2 | no motion"),
     ]
     paths = write_results(runs, tmp_path / "real", "m", suite=True)
     md = paths["md"].read_text()
     table = [ln for ln in md.splitlines() if ln.startswith("|")]
     assert len(table) == 2 + len(runs) and len({ln.count("|") for ln in table}) == 1
-    assert "| scissors | quick | 3 / 2 | 2R / 1R | 87.600 | 0.250 | 178.6 | - | 7.400 | 0.340 " \
-           "| 140.0 | ok |" in md
+    assert "| scissors | quick | 3 / 2 | 2R / 1R | - | 87.600 | 0.250 | 178.6 | - | 7.400 " \
+           "| 0.340 | 140.0 | ok |" in md
+    # A part that moves less than a pixel in the images is named as such.
+    assert "| cabinet_tall | quick | 3 / 3 (2 move >= 1 px) | 1R+1P / 1R+1P | 0.140 |" in md
     assert "| fridge | quick | - / - | - / - |" in table[-1]
     assert "failed: stage 2 / no motion" in table[-1]
     back = read_csv(paths["csv"])
     assert [(r.parts_true, r.parts_found, r.types_true, r.types_found) for r in back] == [
         (2, 3, "1R", "2R"), (3, 3, "1R+1P", "1R+1P"), (None, None, "", "")]
+    assert [r.part_motion_px for r in back] == [[], [8.64, 0.14], []]
     image = np.asarray(Image.open(paths["png"]).convert("L"), dtype=float)
     assert image.std() > 10
 
@@ -380,6 +384,7 @@ def test_suite_run_loop_renders_and_records_structure(tmp_path, monkeypatch):
     assert [r.scene for r in back] == ["lidbox-hinge", "lidbox-flap_hinge"]
     assert all((r.parts_true, r.parts_found, r.types_true, r.types_found) ==
                (2, 2, "1R", "1R") for r in back)
+    assert all(len(r.part_motion_px) == 1 and r.part_motion_px[0] > 0 for r in back)
     scene = load_scene(out / "accuracy_runs" / "scenes" / "lidbox-hinge-r24-v2")
     assert len(scene.gt.joints) == 1 and scene.gt.joints[0].amount < 0  # towards -1.5
     assert "| lidbox-hinge | quick | 2 / 2 | 1R / 1R |" in (out / "accuracy.md").read_text()

@@ -114,7 +114,7 @@ def _joint_summary(matching: Matching, pred: list[dict], gt: list[Any]) -> dict[
     }
 
 
-def _load_mesh(path: Path) -> trimesh.Trimesh | None:
+def load_mesh(path: Path) -> trimesh.Trimesh | None:
     """The mesh at `path`, or None when the file is missing or holds no triangles."""
     if not path.is_file():
         return None
@@ -145,12 +145,12 @@ def _chamfer_summary(out_dir: Path, scene: Scene, matching: Matching | None, sam
                 skipped.append(f"{state}: no GT mesh '{gt_key}' in the scene")
                 continue
             pred_path = out_dir / "meshes" / state / f"{pred_key}.ply"
-            pred_mesh = _load_mesh(pred_path)
+            pred_mesh = load_mesh(pred_path)
             if pred_mesh is None:
                 what = "missing" if not pred_path.is_file() else "empty"
                 skipped.append(f"{pred_path} {what}: CD of {state}/{gt_key} not computed")
                 continue
-            gt_mesh = _load_mesh(gt_files[gt_key])
+            gt_mesh = load_mesh(gt_files[gt_key])
             if gt_mesh is None:
                 skipped.append(f"{gt_files[gt_key]} has no triangles: CD not computed")
                 continue

@@ -206,11 +206,15 @@ def train_or_resume(scene_dir: Path, out_dir: Path, config: Any, resume: bool) -
 
 def record_structure(record: Run, out_dir: Path, scene_dir: Path) -> None:
     """Part count K (static included) and joint types, found (joints.json) and true
-    (gt/trans.json), when those files exist."""
+    (gt/trans.json), and how far each true part moves in the images, when those files exist."""
+    from gear.bench.accuracy.visibility import part_motion_pixels
+    from gear.data import load_scene
+
     gt = scene_dir / "gt" / "trans.json"
     if gt.is_file():
         types = [j["type"] for j in json.loads(gt.read_text())["trans_info"]]
         record.parts_true, record.types_true = 1 + len(types), type_counts(types)
+        record.part_motion_px = part_motion_pixels(load_scene(scene_dir)) or []
     found = out_dir / "joints.json"
     if found.is_file():
         types = [j["type"] for j in json.loads(found.read_text())["joints"]]

@@ -24,6 +24,9 @@ METRICS = [
 ]
 # The pipeline's timed steps in the order they run (training's `timings` keys) and their column
 # labels: stage 1 of the start (A) and end (B) state, stage 2, stage 3, writing the outputs.
+# A part whose surface moves less than this in the training images is below what any image
+# method can see (gear.bench.accuracy.visibility).
+VISIBLE_PX = 1.0
 STAGES = {"stage1-start": "stage 1 A", "stage1-end": "stage 1 B", "stage2": "stage 2",
           "stage3": "stage 3", "outputs": "outputs"}
 
@@ -48,6 +51,16 @@ class Run:
     # Process CPU time of training (every thread): on a shared machine wall times vary with the
     # load, CPU times compare.
     cpu_seconds: float | None = None
+    # How many pixels each true moving part's surface moves between the states in the training
+    # images (trans_info order; empty when unknown).
+    part_motion_px: list[float] = field(default_factory=list)
+
+    @property
+    def parts_visible(self) -> int | None:
+        """True part count (static included) counting only parts that move a pixel or more."""
+        if not self.part_motion_px:
+            return None
+        return 1 + sum(px >= VISIBLE_PX for px in self.part_motion_px)
 
     @property
     def total_seconds(self) -> float:
@@ -64,6 +77,7 @@ class Run:
         out["type_mismatches"] = self.type_mismatches
         out.update({"parts_true": self.parts_true, "parts_found": self.parts_found,
                     "types_true": self.types_true, "types_found": self.types_found})
+        out["part_motion_px"] = ";".join(f"{px:.3g}" for px in self.part_motion_px) or None
         out["status"] = self.status
         return out
 
@@ -98,6 +112,7 @@ def read_csv(path: Path) -> list[Run]:
             int(row["type_mismatches"] or 0), row["status"],
             _integer(row.get("parts_true")), _integer(row.get("parts_found")),
             row.get("types_true") or "", row.get("types_found") or "", number(row.get("cpu_s")),
+            [float(px) for px in (row.get("part_motion_px") or "").split(";") if px],
         ))
     return records
 
@@ -147,16 +162,19 @@ def markdown_table(records: Sequence[Run], machine: str) -> str:
 def suite_table(records: Sequence[Run], machine: str) -> str:
     """The real-asset suite's table: one row per object and budget, structure found vs true,
     the joint and part errors and the wall time."""
-    header = ["object", "budget", "K found / true", "types found / true", "Axis Ang (deg)",
-              "Axis Pos (x10)", "Geo Dist rev (deg)", "Geo Dist pri", "CD-m", "Part IoU",
-              "wall (s)", "status"]
+    header = ["object", "budget", "K found / true", "types found / true",
+              "smallest part motion (px)", "Axis Ang (deg)", "Axis Pos (x10)",
+              "Geo Dist rev (deg)", "Geo Dist pri", "CD-m", "Part IoU", "wall (s)", "status"]
     lines = [f"Machine: {machine}", "", "| " + " | ".join(header) + " |",
              "|" + "---|" * len(header)]
     for r in records:
         found = "-" if r.parts_found is None else str(r.parts_found)
         true = "-" if r.parts_true is None else str(r.parts_true)
+        if r.parts_visible is not None and r.parts_visible != r.parts_true:
+            true += f" ({r.parts_visible} move >= {VISIBLE_PX:g} px)"
+        smallest = min(r.part_motion_px) if r.part_motion_px else None
         cells = [r.scene, r.budget, f"{found} / {true}",
-                 f"{r.types_found or '-'} / {r.types_true or '-'}"]
+                 f"{r.types_found or '-'} / {r.types_true or '-'}", _cell(smallest)]
         cells += [_cell(r.metrics.get(key)) for key in
                   ("axis_ang", "axis_pos", "geo_dist_deg", "geo_dist_m", "cd_m", "part_iou")]
         cells += [_cell(r.total_seconds) if r.timings else "-", r.status.replace("|", "/")]
