@@ -313,7 +313,7 @@ def test_suite_table_and_plot_show_structure_per_object(tmp_path):
         Run("cabinet_tall", "quick", iterations=300, timings={"stage1": 90.0},
             metrics={"axis_ang": 0.5, "geo_dist_m": 0.01, "part_iou": 0.8}, parts_true=3,
             parts_found=3, types_true="1R+1P", types_found="1R+1P",
-            part_motion_px=[8.64, 0.14]),
+            part_motion_px=[8.64, 0.14], types_visible="1R"),
         Run("fridge", "quick", iterations=300, status="failed: stage 2 | no motion"),
     ]
     paths = write_results(runs, tmp_path / "real", "m", suite=True)
@@ -330,6 +330,11 @@ def test_suite_table_and_plot_show_structure_per_object(tmp_path):
     assert [(r.parts_true, r.parts_found, r.types_true, r.types_found) for r in back] == [
         (2, 3, "1R", "2R"), (3, 3, "1R+1P", "1R+1P"), (None, None, "", "")]
     assert [r.part_motion_px for r in back] == [[], [8.64, 0.14], []]
+    assert back[1].types_visible == "1R"
+    # The summary counts the scenes found right, on every true part and on the visible ones:
+    # cabinet_tall is right on all three, not on its two visible ones (it found a third part).
+    assert ("- quick: K and types right on 1 of 3 scenes (1 of 2 with at most 3 parts); on the "
+            "parts that move >= 1 px: 0 of 3 (0 of 2)") in md
     image = np.asarray(Image.open(paths["png"]).convert("L"), dtype=float)
     assert image.std() > 10
 
@@ -385,6 +390,7 @@ def test_suite_run_loop_renders_and_records_structure(tmp_path, monkeypatch):
     assert all((r.parts_true, r.parts_found, r.types_true, r.types_found) ==
                (2, 2, "1R", "1R") for r in back)
     assert all(len(r.part_motion_px) == 1 and r.part_motion_px[0] > 0 for r in back)
+    assert all(r.types_visible == ("1R" if r.part_motion_px[0] >= 1 else "-") for r in back)
     scene = load_scene(out / "accuracy_runs" / "scenes" / "lidbox-hinge-r24-v2")
     assert len(scene.gt.joints) == 1 and scene.gt.joints[0].amount < 0  # towards -1.5
     assert "| lidbox-hinge | quick | 2 / 2 | 1R / 1R |" in (out / "accuracy.md").read_text()

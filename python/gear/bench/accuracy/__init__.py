@@ -29,6 +29,7 @@ from typing import Any
 
 from gear.bench.accuracy.records import (
     METRICS,
+    VISIBLE_PX,
     Run,
     markdown_table,
     read_csv,
@@ -215,6 +216,10 @@ def record_structure(record: Run, out_dir: Path, scene_dir: Path) -> None:
         types = [j["type"] for j in json.loads(gt.read_text())["trans_info"]]
         record.parts_true, record.types_true = 1 + len(types), type_counts(types)
         record.part_motion_px = part_motion_pixels(load_scene(scene_dir)) or []
+        if record.part_motion_px:
+            record.types_visible = type_counts(
+                [t for t, px in zip(types, record.part_motion_px, strict=True)
+                 if px >= VISIBLE_PX])
     found = out_dir / "joints.json"
     if found.is_file():
         types = [j["type"] for j in json.loads(found.read_text())["joints"]]

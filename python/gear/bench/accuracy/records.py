@@ -54,6 +54,8 @@ class Run:
     # How many pixels each true moving part's surface moves between the states in the training
     # images (trans_info order; empty when unknown).
     part_motion_px: list[float] = field(default_factory=list)
+    # The true joint types of the parts that move VISIBLE_PX or more ("" when unknown).
+    types_visible: str = ""
 
     @property
     def parts_visible(self) -> int | None:
@@ -61,6 +63,15 @@ class Run:
         if not self.part_motion_px:
             return None
         return 1 + sum(px >= VISIBLE_PX for px in self.part_motion_px)
+
+    def structure_right(self, visible: bool = False) -> bool | None:
+        """Whether K and the joint types found are the true ones (with `visible`, those of the
+        parts that move a pixel or more); None when either is unknown."""
+        parts, types = ((self.parts_visible, self.types_visible) if visible
+                        else (self.parts_true, self.types_true))
+        if self.status != "ok" or parts is None or self.parts_found is None or not types:
+            return None
+        return parts == self.parts_found and types == self.types_found
 
     @property
     def total_seconds(self) -> float:
@@ -78,6 +89,7 @@ class Run:
         out.update({"parts_true": self.parts_true, "parts_found": self.parts_found,
                     "types_true": self.types_true, "types_found": self.types_found})
         out["part_motion_px"] = ";".join(f"{px:.3g}" for px in self.part_motion_px) or None
+        out["types_visible"] = self.types_visible
         out["status"] = self.status
         return out
 
@@ -113,6 +125,7 @@ def read_csv(path: Path) -> list[Run]:
             _integer(row.get("parts_true")), _integer(row.get("parts_found")),
             row.get("types_true") or "", row.get("types_found") or "", number(row.get("cpu_s")),
             [float(px) for px in (row.get("part_motion_px") or "").split(";") if px],
+            row.get("types_visible") or "",
         ))
     return records
 
@@ -179,7 +192,28 @@ def suite_table(records: Sequence[Run], machine: str) -> str:
                   ("axis_ang", "axis_pos", "geo_dist_deg", "geo_dist_m", "cd_m", "part_iou")]
         cells += [_cell(r.total_seconds) if r.timings else "-", r.status.replace("|", "/")]
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n" + suite_summary(records)
+
+
+def suite_summary(records: Sequence[Run]) -> str:
+    """Per budget (and variant): on how many scenes K and the joint types are right, in all
+    and on those with at most 3 parts, counting every true part and only those that move a
+    pixel or more."""
+    groups: dict[str, list[Run]] = {}
+    for r in records:
+        label = r.budget if r.variant == "default" else f"{r.budget} {r.variant}"
+        groups.setdefault(label, []).append(r)
+    lines = []
+    for label, runs in groups.items():
+        small = [r for r in runs if r.parts_true is not None and r.parts_true <= 3]
+
+        def right(among: list[Run], visible: bool) -> str:
+            return f"{sum(bool(r.structure_right(visible)) for r in among)} of {len(among)}"
+
+        lines.append(f"- {label}: K and types right on {right(runs, False)} scenes "
+                     f"({right(small, False)} with at most 3 parts); on the parts that move "
+                     f">= {VISIBLE_PX:g} px: {right(runs, True)} ({right(small, True)})")
+    return ("\n" + "\n".join(lines) + "\n") if lines else ""
 
 
 def plot(records: Sequence[Run], path: Path) -> None:
