@@ -215,7 +215,9 @@ def record_structure(record: Run, out_dir: Path, scene_dir: Path) -> None:
     if gt.is_file():
         types = [j["type"] for j in json.loads(gt.read_text())["trans_info"]]
         record.parts_true, record.types_true = 1 + len(types), type_counts(types)
-        record.part_motion_px = part_motion_pixels(load_scene(scene_dir)) or []
+        moved = part_motion_pixels(load_scene(scene_dir)) or []
+        # (a trans_info entry the loader could not read leaves the two lists unpaired)
+        record.part_motion_px = moved if len(moved) == len(types) else []
         if record.part_motion_px:
             record.types_visible = type_counts(
                 [t for t, px in zip(types, record.part_motion_px, strict=True)

@@ -22,11 +22,11 @@ METRICS = [
     ("part_iou", "Part IoU", False),
     ("psnr", "PSNR (dB)", False),
 ]
-# The pipeline's timed steps in the order they run (training's `timings` keys) and their column
-# labels: stage 1 of the start (A) and end (B) state, stage 2, stage 3, writing the outputs.
 # A part whose surface moves less than this in the training images is below what any image
 # method can see (gear.bench.accuracy.visibility).
 VISIBLE_PX = 1.0
+# The pipeline's timed steps in the order they run (training's `timings` keys) and their column
+# labels: stage 1 of the start (A) and end (B) state, stage 2, stage 3, writing the outputs.
 STAGES = {"stage1-start": "stage 1 A", "stage1-end": "stage 1 B", "stage2": "stage 2",
           "stage3": "stage 3", "outputs": "outputs"}
 
