@@ -32,7 +32,7 @@ def scene_with(tmp_path, joints: list[GtJoint], cameras: list[Camera]) -> Scene:
     for i in range(len(joints)):
         path = tmp_path / f"part_{i}.ply"
         square.export(path)
-        meshes["part_0" if len(joints) == 1 else f"part_{i}"] = path
+        meshes[f"part_{i}"] = path
     blank = np.zeros((64, 64, 3), np.float32)
     views = [View(f"start/train/{i:04d}", c, blank, blank[..., 0]) for i, c in enumerate(cameras)]
     return Scene(tmp_path, {"start": {"train": views}}, GroundTruth(joints, {"start": meshes}))

@@ -29,7 +29,7 @@ def part_motion_pixels(scene: Scene, seed: int = 0) -> list[float] | None:
     files = gt.meshes.get("start", {})
     moved = []
     for i, joint in enumerate(gt.joints):
-        key = "part_0" if len(gt.joints) == 1 else f"part_{i}"
+        key = f"part_{i}"  # gear.data.gt.gt_mesh_files' name for part i's mesh
         mesh = load_mesh(files[key]) if key in files else None
         if mesh is None or mesh.area <= 0:
             return None
