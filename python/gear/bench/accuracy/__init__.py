@@ -25,7 +25,7 @@ import os
 import platform
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gear.bench.accuracy.records import (
     METRICS,
@@ -38,6 +38,10 @@ from gear.bench.accuracy.records import (
     write_csv,
     write_results,
 )
+
+if TYPE_CHECKING:  # the trainer is imported where it runs: `bench accuracy --help` stays light
+    from gear.config import TrainConfig
+    from gear.train import TrainResult
 
 # The paper's EM intervals, studied on its 30k-iteration stage 3. A run with a shorter stage 3
 # uses each at the same fraction of its schedule (scaled_em_interval), so a variant keeps the
@@ -188,7 +192,8 @@ def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: d
     return record
 
 
-def train_or_resume(scene_dir: Path, out_dir: Path, config: Any, resume: bool) -> Any:
+def train_or_resume(scene_dir: Path, out_dir: Path, config: TrainConfig,
+                    resume: bool) -> TrainResult:
     """Trains `config` into `out_dir`, replacing an earlier run there; with `resume`, an
     interrupted run there (a checkpoint, no completion marker) continues instead, unless its
     checkpoint belongs to another scene or configuration (then it is replaced, and said)."""

@@ -206,14 +206,15 @@ def suite_summary(records: Sequence[Run]) -> str:
     lines = []
     for label, runs in groups.items():
         small = [r for r in runs if r.parts_true is not None and r.parts_true <= 3]
-
-        def right(among: list[Run], visible: bool) -> str:
-            return f"{sum(bool(r.structure_right(visible)) for r in among)} of {len(among)}"
-
-        lines.append(f"- {label}: K and types right on {right(runs, False)} scenes "
-                     f"({right(small, False)} with at most 3 parts); on the parts that move "
-                     f">= {VISIBLE_PX:g} px: {right(runs, True)} ({right(small, True)})")
+        lines.append(f"- {label}: K and types right on {_right(runs, False)} scenes "
+                     f"({_right(small, False)} with at most 3 parts); on the parts that move "
+                     f">= {VISIBLE_PX:g} px: {_right(runs, True)} ({_right(small, True)})")
     return ("\n" + "\n".join(lines) + "\n") if lines else ""
+
+
+def _right(runs: Sequence[Run], visible: bool) -> str:
+    """"N of M": how many of `runs` have K and the types right (Run.structure_right)."""
+    return f"{sum(bool(r.structure_right(visible)) for r in runs)} of {len(runs)}"
 
 
 def plot(records: Sequence[Run], path: Path) -> None:
