@@ -17,9 +17,12 @@ from splat_scenes import ARRAYS, camera, random_scene, relative_l2
 BACKGROUND = torch.tensor([0.1, 0.3, 0.6])
 
 
-def render_and_grads(backend: str, seed: int = 3) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+def render_and_grads(
+    backend: str, seed: int = 3, held: int = 0
+) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
     scene = random_scene(2000, 3, seed, 1.0, (-3.5, -2.0)).to(torch.float32, requires_grad=True)
-    out = splat.rasterize(*scene.arrays(), camera(61, 45), BACKGROUND, True, backend=backend)
+    out = splat.rasterize(*scene.arrays(), camera(61, 45), BACKGROUND, True, backend=backend,
+                          held=held)
     g = torch.Generator().manual_seed(seed)
     images = [out.features, out.alpha, out.depth]
     loss = sum((img * torch.rand(img.shape, generator=g)).sum() for img in images)
@@ -35,6 +38,46 @@ def test_cpu_and_wgpu_agree_through_autograd():
     for name, a, b in zip(ARRAYS, cpu_grads, gpu_grads, strict=True):
         assert b.abs().sum() > 0, name
         assert relative_l2(a, b) <= 1e-4, f"d{name}: {relative_l2(a, b):.2e}"
+
+
+@pytest.mark.parametrize("backend", ["cpu", "wgpu"])
+def test_held_gaussians_pass_no_gradient_and_leave_the_others(backend):
+    """The first `held` Gaussians (the caller's constants) get zero gradients through
+    autograd; the others' are those of a full backward (bit-identical on the CPU executor; the
+    wgpu kernels add with atomics in no fixed order) and the images are unchanged."""
+    held = 1200
+    images, full = render_and_grads(backend)
+    held_images, part = render_and_grads(backend, held=held)
+    for a, b in zip(images, held_images, strict=True):
+        assert torch.equal(a, b)
+    for name, a, b in zip(ARRAYS, full, part, strict=True):
+        assert torch.count_nonzero(b[:held]) == 0, name
+        assert b[held:].abs().sum() > 0, name
+        if backend == "cpu":
+            assert torch.equal(a[held:], b[held:]), name
+        else:
+            assert relative_l2(a[held:], b[held:]) <= 1e-5, name
+
+
+def test_held_matches_the_reference_and_is_checked():
+    """The torch reference cuts the held rows from the graph: the same gradients as the CPU
+    executor's (to the executors' parity tolerance); a bad `held` is a one-line error."""
+    from gear.splat_reference import rasterize_dense
+
+    scene = random_scene(300, 3, 9, 1.0, (-3.5, -2.0)).to(torch.float32, requires_grad=True)
+    grads = []
+    for render in (rasterize_dense, lambda *a, **k: splat.rasterize(*a, **k, backend="cpu")):
+        for a in scene.arrays():
+            a.grad = None
+        out = render(*scene.arrays(), camera(31, 23), BACKGROUND, held=120)
+        (out.features.sum() + out.alpha.sum()).backward()
+        grads.append([a.grad.clone() for a in scene.arrays()])
+    for name, ref, cpu in zip(ARRAYS, *grads, strict=True):
+        assert torch.count_nonzero(ref[:120]) == 0 and torch.count_nonzero(cpu[:120]) == 0
+        assert relative_l2(cpu[120:], ref[120:]) <= 1e-4, name
+    for bad, error in ((301, ValueError), (-1, ValueError), (2.5, TypeError)):
+        with pytest.raises(error, match="'held'"):
+            splat.rasterize(*scene.arrays(), camera(31, 23), held=bad)
 
 
 def test_gear_backend_chooses_the_executor(monkeypatch):

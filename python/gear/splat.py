@@ -33,7 +33,7 @@ from gear import _core
 from gear.camera import Camera
 
 __all__ = [
-    "BACKENDS", "Camera", "RenderOutput", "as_numpy", "auto_backend", "rasterize",
+    "BACKENDS", "Camera", "RenderOutput", "as_numpy", "auto_backend", "check_held", "rasterize",
     "resolve_backend",
 ]
 
@@ -121,6 +121,16 @@ def _check_inputs(arrays: tuple[Tensor, ...], camera: Camera, background: Tensor
     return background
 
 
+def check_held(held: Any, n: int) -> int:
+    """`held` (how many leading Gaussians are the caller's constants) as an int in [0, n], or
+    a clear error."""
+    if isinstance(held, bool) or not isinstance(held, int | np.integer):
+        raise TypeError(f"'held' must be an int, got {type(held).__name__}")
+    if not 0 <= held <= n:
+        raise ValueError(f"'held' must be in [0, {n}] (the Gaussians rendered), got {held}")
+    return int(held)
+
+
 def as_numpy(t: Tensor) -> np.ndarray:
     """A zero-copy view of a contiguous CPU tensor; others (e.g. the expanded gradient
     of a sum) are copied by numpy on this thread rather than by a torch kernel on its OpenMP
@@ -143,6 +153,7 @@ class _Rasterize(torch.autograd.Function):
         background: Tensor,
         depth: bool,
         backend: str,
+        held: int,
     ) -> tuple[Tensor, ...]:
         render = _core.rasterize_forward_cpu if backend == "cpu" else _core.rasterize_forward
         image, alpha, depth_image, state = render(
@@ -156,6 +167,7 @@ class _Rasterize(torch.autograd.Function):
         )
         ctx.state = state
         ctx.depth = depth
+        ctx.held = held
         outputs = (torch.from_numpy(image), torch.from_numpy(alpha))
         return (*outputs, torch.from_numpy(depth_image)) if depth else outputs
 
@@ -171,11 +183,12 @@ class _Rasterize(torch.autograd.Function):
             as_numpy(grads[1].float()),
             grad_depth,
             features_grad=wanted[4],
+            held=ctx.held,
         )
         input_grads = tuple(
             torch.from_numpy(g) if need else None for g, need in zip(arrays, wanted, strict=True)
         )
-        return (*input_grads, None, None, None, None)
+        return (*input_grads, None, None, None, None, None)
 
 
 def rasterize(
@@ -188,15 +201,20 @@ def rasterize(
     background: Tensor | None = None,
     depth: bool = False,
     backend: str | None = None,
+    held: int = 0,
 ) -> RenderOutput:
     """Renders N Gaussians seen by `camera` (see the module docstring).
 
     means [N,3], quats [N,4] (w, x, y, z), log_scales [N,3], opacity_logits [N], features
     [N,C] (1 <= C <= 64), background [C] (None: zeros): float32 CPU tensors. Gradients flow to
-    the five Gaussian arrays that require them. `backend`: "cpu", "wgpu" or None (GEAR_BACKEND).
+    the five Gaussian arrays that require them, but for the first `held` Gaussians: constants
+    of the caller (e.g. a static part), whose gradients are zeros and cost the CPU executor's
+    backward no work beyond replaying them for the others' transmittance. `backend`: "cpu",
+    "wgpu" or None (GEAR_BACKEND).
     """
     arrays = (means, quats, log_scales, opacity_logits, features)
     background = _check_inputs(arrays, camera, background)
+    held = check_held(held, means.shape[0])
     executor = resolve_backend(backend)
-    outputs = _Rasterize.apply(*arrays, camera, background, bool(depth), executor)
+    outputs = _Rasterize.apply(*arrays, camera, background, bool(depth), executor, held)
     return RenderOutput(outputs[0], outputs[1], outputs[2] if depth else None)

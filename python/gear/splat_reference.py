@@ -19,7 +19,7 @@ from torch import Tensor
 
 from gear.camera import Camera
 from gear.kinematics import quat_to_matrix as _rotation
-from gear.splat import RenderOutput
+from gear.splat import RenderOutput, check_held
 
 NEAR = 0.01
 FAR = 1e4
@@ -224,6 +224,14 @@ def _prepare(
     return proj, background.to(features.dtype)
 
 
+def _hold(arrays: tuple[Tensor, ...], held: int) -> tuple[Tensor, ...]:
+    """`arrays` with their first `held` rows cut from the graph (the caller's constants)."""
+    held = check_held(held, arrays[0].shape[0])
+    if held == 0:
+        return arrays
+    return tuple(torch.cat([a[:held].detach(), a[held:]]) for a in arrays)
+
+
 def rasterize_dense(
     means: Tensor,
     quats: Tensor,
@@ -233,9 +241,11 @@ def rasterize_dense(
     camera: Camera,
     background: Tensor | None = None,
     depth: bool = False,
+    held: int = 0,
 ) -> RenderOutput:
-    """Every Gaussian against every pixel: memory grows as H·W·N, for small scenes."""
-    arrays = (means, quats, log_scales, opacity_logits, features)
+    """Every Gaussian against every pixel: memory grows as H·W·N, for small scenes. The first
+    `held` Gaussians pass no gradient (as gear.splat.rasterize)."""
+    arrays = _hold((means, quats, log_scales, opacity_logits, features), held)
     proj, background = _prepare(arrays, camera, background)
     h, w = camera.height, camera.width
     rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
@@ -257,6 +267,7 @@ def rasterize_tiled(
     background: Tensor | None = None,
     depth: bool = False,
     block: int = 16,
+    held: int = 0,
 ) -> RenderOutput:
     """As `rasterize_dense`, one block of block x block pixels at a time, each against only the
     Gaussians whose tile rectangle meets it (block must be a multiple of the 16-pixel tile).
@@ -264,7 +275,7 @@ def rasterize_tiled(
     than 32, 6x faster than 64): a pixel only meets the Gaussians of its own tile."""
     if block <= 0 or block % TILE:
         raise ValueError(f"block must be a positive multiple of {TILE}, got {block}")
-    arrays = (means, quats, log_scales, opacity_logits, features)
+    arrays = _hold((means, quats, log_scales, opacity_logits, features), held)
     proj, background = _prepare(arrays, camera, background)
     h, w = camera.height, camera.width
     per_tile = block // TILE

@@ -136,14 +136,14 @@ fn time(backend: Backend, n: usize, size: u32, repeats: usize) -> Timing {
             Backend::Wgpu => {
                 let (_, state) = forward(&scene.view(), &cam, &options).expect("forward");
                 let (middle, cpu1) = (Instant::now(), cpu_ms());
-                backward(&state, &grads, Accumulation::Auto, true).expect("backward");
+                backward(&state, &grads, Accumulation::Auto, true, 0).expect("backward");
                 pairs = state.pairs as u64;
                 (middle, cpu1)
             }
             Backend::Cpu => {
                 let (_, state) = cpu::forward(&scene.view(), &cam, &options).expect("forward");
                 let (middle, cpu1) = (Instant::now(), cpu_ms());
-                cpu::backward(&state, &grads, true).expect("backward");
+                cpu::backward(&state, &grads, true, 0).expect("backward");
                 pairs = state.stats.pairs;
                 let s = state.stats;
                 evaluations = Some((

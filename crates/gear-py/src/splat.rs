@@ -418,9 +418,11 @@ fn wrong_state(expected: &str) -> PyErr {
 
 /// Gradients of the GPU or CPU render that produced `state` (float32 arrays shaped like the
 /// inputs). With `features_grad=False` the feature gradients are skipped (returned as None),
-/// which is cheaper and leaves the other gradients unchanged.
+/// which is cheaper and leaves the other gradients unchanged. The first `held` Gaussians are
+/// constants of the caller: their gradients come back as zeros (the CPU executor skips their
+/// work; the others are unchanged).
 #[pyfunction]
-#[pyo3(signature = (state, grad_features, grad_alpha, grad_depth=None, features_grad=true))]
+#[pyo3(signature = (state, grad_features, grad_alpha, grad_depth=None, features_grad=true, held=0))]
 fn rasterize_backward<'py>(
     py: Python<'py>,
     state: &Bound<'py, RasterState>,
@@ -428,6 +430,7 @@ fn rasterize_backward<'py>(
     grad_alpha: &Bound<'py, PyAny>,
     grad_depth: Option<&Bound<'py, PyAny>>,
     features_grad: bool,
+    held: usize,
 ) -> PyResult<Gradients<'py>> {
     let state = state.get();
     let grads = image_grads::<f32>(state, grad_features, grad_alpha, grad_depth)?;
@@ -439,9 +442,11 @@ fn rasterize_backward<'py>(
     };
     let g = match &state.kind {
         StateKind::Gpu(forward) => guarded(py, || {
-            splat::backward(forward, &view, accumulation, features_grad)
+            splat::backward(forward, &view, accumulation, features_grad, held)
         })?,
-        StateKind::Cpu(forward) => guarded(py, || cpu::backward(forward, &view, features_grad))?,
+        StateKind::Cpu(forward) => {
+            guarded(py, || cpu::backward(forward, &view, features_grad, held))?
+        }
         StateKind::Reference(_) => {
             return Err(wrong_state("rasterize_forward or rasterize_forward_cpu"))
         }

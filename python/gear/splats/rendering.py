@@ -45,6 +45,7 @@ def render(
     features: torch.Tensor | None = None,
     depth: bool = False,
     detach: bool = False,
+    held: int = 0,
 ) -> Any:  # RenderOutput(.features [H,W,C], .alpha [H,W], .depth [H,W] | None)
     """`splats` seen from `camera` over `background` [C] (black when None).
 
@@ -52,7 +53,8 @@ def render(
     gear.kinematics.pose_parts). features: [N,C] to blend instead of the RGB colours (those
     are view-dependent when the splats carry spherical harmonics, see gear.splats.sh).
     detach: no gradient reaches the stored parameters (a given pose or features keep their
-    own graph)."""
+    own graph). held: the first `held` Gaussians pass no gradient at all (constants of the
+    caller, e.g. a static part; their backward work is skipped)."""
     stored = splats.splat_arrays()
     if detach:
         stored = tuple(t.detach() for t in stored)
@@ -65,4 +67,4 @@ def render(
         feats = view_rgb(splats, rgb, camera, means, quats, canonical_quats, detach)
     bg = torch.zeros(feats.shape[1]) if background is None else background
     return rasterizer()(means, quats, log_scales, opacity, feats, camera, background=bg,
-                        depth=depth)
+                        depth=depth, held=held)

@@ -10,7 +10,7 @@ use crate::gpu::GpuContext;
 use super::forward::ForwardState;
 use super::frame::Frame;
 use super::kernels::{self, dispatch, groups, storage, KernelParams, WG};
-use super::types::{GaussianGradients, OutputGradients};
+use super::types::{check_held, GaussianGradients, OutputGradients};
 
 /// Screen-space accumulators per Gaussian: conic a, b, c, u, v, opacity, z, unused.
 const GEOMETRY_STRIDE: usize = 8;
@@ -29,14 +29,20 @@ pub enum Accumulation {
 /// Gradients of a loss with respect to the inputs of the forward pass that made `state`.
 /// Without `features_grad` the feature gradients are not computed (`features` comes back
 /// empty) and the others are unchanged: for callers whose features are constants, as the
-/// backward's cost grows with the channel count.
+/// backward's cost grows with the channel count. The first `held` Gaussians are the caller's
+/// constants: their gradients come back as zeros (computed, then zeroed: the kernels do the
+/// same work; the CPU executor skips it).
 pub fn backward(
     state: &ForwardState,
     grads: &OutputGradients<f32>,
     accumulation: Accumulation,
     features_grad: bool,
+    held: usize,
 ) -> Result<GaussianGradients<f32>> {
-    backward_impl(state, grads, accumulation, features_grad, true, false)
+    check_held(held, state.len())?;
+    let mut gradients = backward_impl(state, grads, accumulation, features_grad, true, false)?;
+    gradients.zero_held(held);
+    Ok(gradients)
 }
 
 /// [`backward`], optionally without subgroup operations even where the adapter has them, and

@@ -836,8 +836,8 @@ fn large_frame_renders_on_both_executors() {
         depth: Some(&wide[2][..]),
     };
     let expected = reference::backward(&scene.view(), &cam, &opts, &wide_grads).unwrap();
-    let gpu_grads = super::backward(&gpu_state, &grads, Accumulation::Auto, true).unwrap();
-    let cpu_grads = super::cpu::backward(&cpu_state, &grads, true).unwrap();
+    let gpu_grads = super::backward(&gpu_state, &grads, Accumulation::Auto, true, 0).unwrap();
+    let cpu_grads = super::cpu::backward(&cpu_state, &grads, true, 0).unwrap();
     for (name, g) in [("wgpu", &gpu_grads), ("cpu", &cpu_grads)] {
         let errors = gradient_errors(g, &expected);
         assert!(errors.iter().all(|&e| e < 1e-3), "{name}: {errors:?}");

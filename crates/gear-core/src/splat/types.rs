@@ -296,3 +296,27 @@ pub struct GaussianGradients<T> {
     /// N x C, row-major; empty when the GPU backward was asked for no feature gradients.
     pub features: Vec<T>,
 }
+
+impl<T: Copy + Default> GaussianGradients<T> {
+    /// Zeroes the gradients of the first `held` Gaussians (the caller's constants; `held` at
+    /// most N, see [`check_held`]).
+    pub fn zero_held(&mut self, held: usize) {
+        self.means[..held].fill([T::default(); 3]);
+        self.quats[..held].fill([T::default(); 4]);
+        self.log_scales[..held].fill([T::default(); 3]);
+        self.opacity_logits[..held].fill(T::default());
+        let channels = self.features.len() / self.means.len().max(1);
+        self.features[..held * channels].fill(T::default());
+    }
+}
+
+/// Checks that a backward's `held` Gaussians (those whose gradients are not wanted: the first
+/// `held`) are no more than the `n` rendered.
+pub fn check_held(held: usize, n: usize) -> Result<()> {
+    if held > n {
+        return Err(GearError::InvalidInput(format!(
+            "held: {held} Gaussians held of {n} rendered"
+        )));
+    }
+    Ok(())
+}

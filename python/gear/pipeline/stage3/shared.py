@@ -167,7 +167,10 @@ class RefineState(Stage):
         pose = held.pose(*motion.motion(1.0))  # once for every view
         terms: dict[str, torch.Tensor] = {}
         for view, bg in zip(views, backgrounds, strict=True):
-            out = render(held, view.camera, bg, pose=pose, depth=view.depth is not None)
+            # The static part comes first and never moves (part 0's motion is the identity):
+            # its Gaussians pass no gradient, and the rasterizer's backward skips their work.
+            out = render(held, view.camera, bg, pose=pose, depth=view.depth is not None,
+                         held=held.counts[0])
             for name, value in image_terms(out, view, bg, self.config).items():
                 terms[name] = terms.get(name, 0.0) + value / len(views)
         return terms

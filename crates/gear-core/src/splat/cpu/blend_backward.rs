@@ -10,6 +10,7 @@
 
 use rayon::prelude::*;
 
+use super::bins::Entry;
 use super::blend::{PixelState, Row, Scene};
 use super::lanes::{
     array, channels, evaluate, mask, masked, select, with_avx2, with_channels, Lanes, Mask, LANES,
@@ -28,6 +29,9 @@ pub(super) struct Replay<'a> {
     pub grads: &'a OutputGradients<'a, f32>,
     /// Also sum the feature gradients (records then hold GEOMETRY + C values, else GEOMETRY).
     pub features_grad: bool,
+    /// Pairs numbered below this belong to held Gaussians (no gradients wanted): they are
+    /// replayed for the transmittance and what lies behind, but get no record.
+    pub first_pair: u32,
 }
 
 impl Replay<'_> {
@@ -196,8 +200,10 @@ fn load_row(
 
 /// Replays a tile's list (entries `range`) back to front for all its rows at once (from the
 /// longest consumed prefix; an entry visits only the rows where the forward blended it and
-/// that hold it in their prefix), adding each row's contributions to the entry's record, rows in increasing order. `C`
-/// is the channel count if it is a compile-time constant ([`with_channels!`]).
+/// that hold it in their prefix), adding each row's contributions to the entry's record, rows
+/// in increasing order; entries of held Gaussians only advance the rows' state, and only
+/// behind the frontmost entry that wants gradients. `C` is the channel count if it is a
+/// compile-time constant ([`with_channels!`]).
 #[inline(always)]
 fn replay_tile<const C: usize>(
     scene: &Scene,
@@ -210,7 +216,14 @@ fn replay_tile<const C: usize>(
 ) {
     let bins = scene.bins;
     let channels = channels::<C>(scene.channels);
-    let stride = replay.stride(channels);
+    // Entries in front of the frontmost one that wants gradients change nothing it sees:
+    // the replay stops there, and a tile of held Gaussians alone is not replayed at all.
+    let Some(front) = range
+        .clone()
+        .find(|&k| bins.entry_pairs[k] >= replay.first_pair)
+    else {
+        return;
+    };
     let start = range.start as u32;
     let mut state: [RowState; TILE as usize] = array(|r| {
         let first = ((rows[r].cy - 0.5) as u32 * scene.width + tx * TILE) as usize;
@@ -226,85 +239,136 @@ fn replay_tile<const C: usize>(
     });
     let ends: [u32; TILE as usize] = array(|r| state[r].last);
     let last = ends.iter().copied().max().unwrap();
-    let zero = [0.0f32; LANES];
     // Rows by decreasing prefix end: those whose consumed prefix holds entry k (end > k) are
     // a leading run of this order that grows as k falls.
     let mut by_end: [usize; TILE as usize] = array(|r| r);
     by_end.sort_unstable_by_key(|&r| std::cmp::Reverse(ends[r]));
     let (mut held, mut holding) = (0, 0u32);
-    for k in (start..last).rev() {
-        let s = &bins.entries[k as usize];
-        let f = &bins.entry_features[k as usize * channels..(k as usize + 1) * channels];
-        let mut touched = false;
+    for k in (front as u32..last).rev() {
         while held < by_end.len() && ends[by_end[held]] > k {
             holding |= 1 << by_end[held];
             held += 1;
         }
-        let mut visit = u32::from(replay.state.blended_rows[k as usize]) & holding;
-        while visit != 0 {
-            let r = visit.trailing_zeros() as usize;
-            visit &= visit - 1;
-            let (row, st) = (&rows[r], &mut state[r]);
-            let dy = row.cy - s.v;
-            let e = evaluate(s, &row.xs, dy);
-            let hit: Mask = array(|i| mask(k < st.consumed[i]) & e.passes[i]);
-            if !hit.iter().any(|&h| h != 0) {
-                continue;
-            }
-            if !touched {
-                buffers.sums[..stride].fill(zero);
-                touched = true;
-            }
-            let mut inv_keep = zero;
-            let mut t_i = zero;
-            let mut w = zero;
-            let mut grad_a = zero;
-            for i in 0..LANES {
-                // One division per lane; the terms below multiply by its reciprocal.
-                inv_keep[i] = 1.0 / (1.0 - e.alpha[i]);
-                t_i[i] = st.t[i] * inv_keep[i];
-                w[i] = e.alpha[i] * t_i[i];
+        let visit = u32::from(replay.state.blended_rows[k as usize]) & holding;
+        if visit == 0 {
+            continue;
+        }
+        let entry = EntryReplay {
+            k,
+            s: &bins.entries[k as usize],
+            f: &bins.entry_features[k as usize * channels..(k as usize + 1) * channels],
+            visit,
+        };
+        let pair = bins.entry_pairs[k as usize];
+        if pair < replay.first_pair {
+            replay_entry::<C, false>(scene, replay, &entry, rows, &mut state, buffers);
+        } else if replay_entry::<C, true>(scene, replay, &entry, rows, &mut state, buffers) {
+            // Each pair's record is written once, its rows summed lane-wise in row order first.
+            records.write(pair as usize, &buffers.sums);
+        }
+    }
+}
+
+/// A list entry being replayed: its index, evaluation data and features, and the rows of the
+/// tile to visit (blended by the forward and holding it in their consumed prefix).
+struct EntryReplay<'a> {
+    k: u32,
+    s: &'a Entry,
+    f: &'a [f32],
+    visit: u32,
+}
+
+/// Replays one entry on the rows it visits: each row's transmittance and what lies behind
+/// advance past it, and with `GRADS` its contributions are summed lane-wise into
+/// `buffers.sums` (its record; returns whether any pixel blended it). Without `GRADS` (a held
+/// Gaussian) only the state the entries in front of it need is updated.
+#[inline(always)]
+fn replay_entry<const C: usize, const GRADS: bool>(
+    scene: &Scene,
+    replay: &Replay,
+    entry: &EntryReplay,
+    rows: &[Row; TILE as usize],
+    state: &mut [RowState; TILE as usize],
+    buffers: &mut TileBuffers,
+) -> bool {
+    let channels = channels::<C>(scene.channels);
+    let stride = replay.stride(channels);
+    let (k, s, f) = (entry.k, entry.s, entry.f);
+    let zero = [0.0f32; LANES];
+    let mut touched = false;
+    let mut visit = entry.visit;
+    while visit != 0 {
+        let r = visit.trailing_zeros() as usize;
+        visit &= visit - 1;
+        let (row, st) = (&rows[r], &mut state[r]);
+        let dy = row.cy - s.v;
+        let e = evaluate(s, &row.xs, dy);
+        let hit: Mask = array(|i| mask(k < st.consumed[i]) & e.passes[i]);
+        if !hit.iter().any(|&h| h != 0) {
+            continue;
+        }
+        if GRADS && !touched {
+            buffers.sums[..stride].fill(zero);
+        }
+        touched = true;
+        let mut inv_keep = zero;
+        let mut t_i = zero;
+        let mut w = zero;
+        let mut grad_a = zero;
+        for i in 0..LANES {
+            // One division per lane; the terms below multiply by its reciprocal.
+            inv_keep[i] = 1.0 / (1.0 - e.alpha[i]);
+            t_i[i] = st.t[i] * inv_keep[i];
+            w[i] = e.alpha[i] * t_i[i];
+            if GRADS {
                 // dL/dalpha_i: own contribution T_i·f_i minus 1/(1-alpha_i) times what it hides.
                 grad_a[i] = st.grad_alpha[i] * st.final_t[i] * inv_keep[i];
             }
-            // The blended lanes' weights, zero elsewhere: the sums below multiply by them
-            // instead of branching per lane, which keeps them vector adds.
-            let w_hit: Lanes = array(|i| masked(w[i], hit[i]));
-            let sums = &mut buffers.sums;
-            for (c, &fc) in f.iter().enumerate() {
-                // Whole-row copies and one loop per update: the form the compiler keeps in
-                // vector registers.
-                let g = buffers.grad_f[r * channels + c];
-                let mut behind = buffers.behind_f[r * channels + c];
+        }
+        // The blended lanes' weights, zero elsewhere: the sums below multiply by them
+        // instead of branching per lane, which keeps them vector adds.
+        let w_hit: Lanes = array(|i| masked(w[i], hit[i]));
+        let sums = &mut buffers.sums;
+        for (c, &fc) in f.iter().enumerate() {
+            // Whole-row copies and one loop per update: the form the compiler keeps in
+            // vector registers.
+            let g = buffers.grad_f[r * channels + c];
+            let mut behind = buffers.behind_f[r * channels + c];
+            if GRADS {
                 for i in 0..LANES {
                     grad_a[i] += g[i] * (fc * t_i[i] - behind[i] * inv_keep[i]);
                 }
-                for i in 0..LANES {
-                    behind[i] += w_hit[i] * fc;
-                }
-                buffers.behind_f[r * channels + c] = behind;
-                if replay.features_grad {
-                    let mut sum = sums[GEOMETRY + c];
-                    for i in 0..LANES {
-                        sum[i] += w_hit[i] * g[i];
-                    }
-                    sums[GEOMETRY + c] = sum;
-                }
             }
-            if scene.depth {
-                // Local copies, as for the features above.
-                let (g, mut behind, mut sum) = (st.grad_depth, st.behind_d, sums[6]);
+            for i in 0..LANES {
+                behind[i] += w_hit[i] * fc;
+            }
+            buffers.behind_f[r * channels + c] = behind;
+            if GRADS && replay.features_grad {
+                let mut sum = sums[GEOMETRY + c];
+                for i in 0..LANES {
+                    sum[i] += w_hit[i] * g[i];
+                }
+                sums[GEOMETRY + c] = sum;
+            }
+        }
+        if scene.depth {
+            // Local copies, as for the features above.
+            let (g, mut behind, mut sum) = (st.grad_depth, st.behind_d, sums[6]);
+            if GRADS {
                 for i in 0..LANES {
                     grad_a[i] += g[i] * (s.z * t_i[i] - behind[i] * inv_keep[i]);
                 }
                 for i in 0..LANES {
                     sum[i] += w_hit[i] * g[i];
                 }
-                for i in 0..LANES {
-                    behind[i] += w_hit[i] * s.z;
-                }
-                (st.behind_d, sums[6]) = (behind, sum);
+                sums[6] = sum;
             }
+            for i in 0..LANES {
+                behind[i] += w_hit[i] * s.z;
+            }
+            st.behind_d = behind;
+        }
+        if GRADS {
             // The 0.999 clamp passes no gradient to opacity and power: dL/dalpha is zeroed on
             // clamped and unblended lanes first (every factor below is finite, so their terms
             // are zeros), then the terms are summed over the lanes term by term (not lane by
@@ -328,13 +392,10 @@ fn replay_tile<const C: usize>(
                     sum[i] += term[i];
                 }
             }
-            for i in 0..LANES {
-                st.t[i] = select(hit[i], t_i[i], st.t[i]);
-            }
         }
-        // Each pair's record is written once, its rows summed lane-wise in row order first.
-        if touched {
-            records.write(bins.entry_pairs[k as usize] as usize, &buffers.sums);
+        for i in 0..LANES {
+            st.t[i] = select(hit[i], t_i[i], st.t[i]);
         }
     }
+    touched
 }

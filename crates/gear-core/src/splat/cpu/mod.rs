@@ -33,7 +33,7 @@ use self::project::{project_backward, View};
 use self::wide::F8;
 use crate::error::Result;
 use crate::splat::types::{
-    Camera, GaussianGradients, Gaussians, OutputGradients, RenderOptions, RenderOutput,
+    check_held, Camera, GaussianGradients, Gaussians, OutputGradients, RenderOptions, RenderOutput,
 };
 
 pub use self::pool::{build_pool, global_pool, thread_count};
@@ -135,13 +135,17 @@ pub fn forward_in(
 
 /// Gradients of a loss with respect to the inputs of the forward pass that made `state`.
 /// Without `features_grad` the feature gradients are not computed (`features` comes back
-/// empty) and the others are bit-identical to those of a full backward.
+/// empty) and the others are bit-identical to those of a full backward. The first `held`
+/// Gaussians are the caller's constants: their gradients come back as zeros, and the
+/// backward only replays them for the transmittance the others need (the rest are
+/// bit-identical to those of a full backward).
 pub fn backward(
     state: &CpuState,
     grads: &OutputGradients<f32>,
     features_grad: bool,
+    held: usize,
 ) -> Result<GaussianGradients<f32>> {
-    backward_in(global_pool()?, state, grads, features_grad)
+    backward_in(global_pool()?, state, grads, features_grad, held)
 }
 
 /// Bytes a [`backward`] of `state` allocates at its peak (pair records and the outputs).
@@ -158,17 +162,20 @@ pub fn backward_in(
     state: &CpuState,
     grads: &OutputGradients<f32>,
     features_grad: bool,
+    held: usize,
 ) -> Result<GaussianGradients<f32>> {
     let channels = state.bins.channels;
     grads.validate(state.camera.pixels(), channels)?;
+    check_held(held, state.bins.len)?;
     let replay = Replay {
         state: &state.pixels,
         grads,
         features_grad,
+        first_pair: state.bins.pair_offsets[held],
     };
     pool.install(|| {
         let records = blend_backward(&state.scene(), &replay);
-        let r = reduce(state, &records, features_grad);
+        let r = reduce(state, &records, features_grad, held);
         RECORDS.keep(records);
         Ok(r)
     })
@@ -186,8 +193,14 @@ struct GradientChunk<'a> {
     channels: usize,
 }
 
-/// Sums each Gaussian's pair records in tile order and chains them through the projection.
-fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGradients<f32> {
+/// Sums each Gaussian's pair records in tile order and chains them through the projection;
+/// the first `held` Gaussians keep zero gradients.
+fn reduce(
+    state: &CpuState,
+    records: &[f32],
+    features_grad: bool,
+    held: usize,
+) -> GaussianGradients<f32> {
     let bins = &state.bins;
     let n = bins.len;
     let channels = if features_grad { bins.channels } else { 0 };
@@ -220,7 +233,9 @@ fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGra
                 features,
                 channels,
             };
-            reduce_chunk(bins, records, &view, c * chunk, out);
+            if (c + 1) * chunk > held {
+                reduce_chunk(bins, records, &view, c * chunk, held, out);
+            }
         });
     GaussianGradients {
         means,
@@ -232,18 +247,25 @@ fn reduce(state: &CpuState, records: &[f32], features_grad: bool) -> GaussianGra
 }
 
 with_avx2!(
-    /// [`reduce`] of Gaussians `first..` into `out`.
-    fn reduce_chunk(bins: &Bins, records: &[f32], view: &View, first: usize, out: GradientChunk) -> () =
+    /// [`reduce`] of Gaussians `first..` into `out`, but for those below `held`.
+    fn reduce_chunk(bins: &Bins, records: &[f32], view: &View, first: usize, held: usize, out: GradientChunk) -> () =
         reduce_chunk_any
 );
 
 /// [`reduce_chunk_body`] specialised for the channel count of the feature gradients (0
 /// without them).
 #[inline(always)]
-fn reduce_chunk_any(bins: &Bins, records: &[f32], view: &View, first: usize, out: GradientChunk) {
+fn reduce_chunk_any(
+    bins: &Bins,
+    records: &[f32],
+    view: &View,
+    first: usize,
+    held: usize,
+    out: GradientChunk,
+) {
     with_channels!(
         out.channels,
-        reduce_chunk_body(bins, records, view, first, out)
+        reduce_chunk_body(bins, records, view, first, held, out)
     )
 }
 
@@ -255,17 +277,23 @@ fn reduce_chunk_body<const C: usize>(
     records: &[f32],
     view: &View,
     first: usize,
+    held: usize,
     out: GradientChunk,
 ) {
     let channels = channels::<C>(out.channels);
+    // Held Gaussians have no gradients: a held Gaussian counts as one without pairs.
+    let wanted = |g: usize| g >= held && !bins.pairs_of(g).is_empty();
     let stride = GEOMETRY + channels;
     for (k, logits) in out.logits.chunks_mut(BLOCK).enumerate() {
         let first = first + k * BLOCK;
         let mut screen = [F8::default(); GEOMETRY];
         let mut any = false;
         for (i, g) in (first..first + logits.len()).enumerate() {
+            if !wanted(g) {
+                continue;
+            }
             let pairs = bins.pairs_of(g);
-            any |= !pairs.is_empty();
+            any = true;
             // A Gaussian's records are contiguous, in tile order: one pass sums every value.
             let row = k * BLOCK + i;
             let features = &mut out.features[row * channels..(row + 1) * channels];
@@ -286,7 +314,7 @@ fn reduce_chunk_body<const C: usize>(
         let p = bins.prepared[first / BLOCK].project(view);
         let grads = project_backward(&p, &screen, view);
         for (i, logit) in logits.iter_mut().enumerate() {
-            if bins.pairs_of(first + i).is_empty() {
+            if !wanted(first + i) {
                 continue;
             }
             let row = k * BLOCK + i;

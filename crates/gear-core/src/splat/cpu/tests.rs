@@ -70,7 +70,7 @@ fn gradients(
     let pool = pool(2);
     let (_, state) = render(&pool, scene, cam, depth);
     let img = image_grads(cam, scene.channels, 99);
-    let cpu = backward_in(&pool, &state, &output_grads(&img, depth), true).unwrap();
+    let cpu = backward_in(&pool, &state, &output_grads(&img, depth), true, 0).unwrap();
     let wide: Vec<Vec<f64>> = img
         .iter()
         .map(|v| v.iter().map(|&x| f64::from(x)).collect())
@@ -125,7 +125,7 @@ fn features_grad_off_keeps_other_gradients() {
             let scene = random_scene(1000, channels, 40 + channels as u64);
             let (_, state) = render(&pool, &scene, &cam, depth);
             let img = image_grads(&cam, channels, 41);
-            let run = |fg| backward_in(&pool, &state, &output_grads(&img, depth), fg).unwrap();
+            let run = |fg| backward_in(&pool, &state, &output_grads(&img, depth), fg, 0).unwrap();
             let (on, off) = (run(true), run(false));
             assert_eq!(on.features.len(), 1000 * channels);
             assert!(off.features.is_empty(), "feature gradients returned");
@@ -136,6 +136,54 @@ fn features_grad_off_keeps_other_gradients() {
             );
             assert_eq!(bits(&on), bits(&off), "C={channels} depth={depth}");
         }
+    }
+}
+
+/// Row g of each of the five gradient arrays, as bits.
+fn row_bits(g: &GaussianGradients<f32>, row: usize, channels: usize) -> Vec<u32> {
+    let mut v = bits(&g.means[row]);
+    v.extend(bits(&g.quats[row]));
+    v.extend(bits(&g.log_scales[row]));
+    v.push(g.opacity_logits[row].to_bits());
+    v.extend(bits(&g.features[row * channels..(row + 1) * channels]));
+    v
+}
+
+/// Held Gaussians (the first `held`) get zero gradients, the others exactly those of a full
+/// backward: the held ones are still replayed for the transmittance the others see.
+#[test]
+fn held_gaussians_get_zeros_and_the_others_are_unchanged() {
+    let cam = camera(90, 70);
+    let pool = pool(2);
+    let n = 1000;
+    for (channels, depth) in [(3usize, true), (4, false)] {
+        let scene = random_scene(n, channels, 50 + channels as u64);
+        let (_, state) = render(&pool, &scene, &cam, depth);
+        let img = image_grads(&cam, channels, 51);
+        let run = |held| backward_in(&pool, &state, &output_grads(&img, depth), true, held);
+        let full = run(0).unwrap();
+        for held in [1, 397, n - 1, n] {
+            let part = run(held).unwrap();
+            let zeros = vec![0u32; 11 + channels];
+            for row in 0..n {
+                let got = row_bits(&part, row, channels);
+                if row < held {
+                    assert_eq!(got, zeros, "held row {row} of {held}: not zero");
+                } else {
+                    assert_eq!(
+                        got,
+                        row_bits(&full, row, channels),
+                        "row {row}, held {held}"
+                    );
+                }
+            }
+        }
+        let wanted = (0..n).filter(|&r| row_bits(&full, r, channels).iter().any(|&b| b != 0));
+        assert!(wanted.count() > n / 2, "too few gradients to compare");
+        let message = run(n + 1)
+            .expect_err("more held than Gaussians")
+            .to_string();
+        assert!(message.contains("held"), "{message}");
     }
 }
 
@@ -162,7 +210,7 @@ fn deterministic_for_any_thread_count() {
     let run = |threads| {
         let pool = pool(threads);
         let (out, state) = render(&pool, &scene, &cam, true);
-        let g = backward_in(&pool, &state, &output_grads(&img, true), true).unwrap();
+        let g = backward_in(&pool, &state, &output_grads(&img, true), true, 0).unwrap();
         all_bits(&out, &g)
     };
     let first = run(1);
@@ -190,8 +238,8 @@ fn cpu_and_gpu_gradients(
     let (_, cpu_state) = render(&pool, scene, cam, depth);
     let img = image_grads(cam, scene.channels, 5);
     let grads = output_grads(&img, depth);
-    let gpu = gpu_backward(&gpu_state, &grads, Accumulation::Auto, true).unwrap();
-    let cpu = backward_in(&pool, &cpu_state, &grads, true).unwrap();
+    let gpu = gpu_backward(&gpu_state, &grads, Accumulation::Auto, true, 0).unwrap();
+    let cpu = backward_in(&pool, &cpu_state, &grads, true, 0).unwrap();
     (cpu, gpu)
 }
 
@@ -212,8 +260,8 @@ fn cpu_matches_gpu() {
                 .worst(ImageError::of(&cpu_out.alpha, &wide(&gpu_out.alpha)));
             let img = image_grads(&cam, channels, seed);
             let grads = output_grads(&img, depth);
-            let gpu = gpu_backward(&gpu_state, &grads, Accumulation::Auto, true).unwrap();
-            let cpu = backward_in(&pool, &cpu_state, &grads, true).unwrap();
+            let gpu = gpu_backward(&gpu_state, &grads, Accumulation::Auto, true, 0).unwrap();
+            let cpu = backward_in(&pool, &cpu_state, &grads, true, 0).unwrap();
             let rel = relative_l2(&geometry_gradients(&cpu), &wide(&geometry_gradients(&gpu)));
             let rel_f = relative_l2(&cpu.features, &wide(&gpu.features));
             eprintln!("cpu vs gpu n={n} C={channels}: image {image:?}, grads {rel:e} {rel_f:e}");
@@ -252,7 +300,7 @@ fn check_finite(
         );
     }
     let img = image_grads(cam, scene.channels, 7);
-    let g = backward_in(&pool, &state, &output_grads(&img, true), true).unwrap();
+    let g = backward_in(&pool, &state, &output_grads(&img, true), true, 0).unwrap();
     assert!(gradients_finite(&g), "{name}: non-finite gradient");
     g
 }
@@ -320,7 +368,7 @@ fn skipping_unblended_rows_changes_no_gradient() {
         let (_, mut state) = render(&pool, &scene, &cam, true);
         let img = image_grads(&cam, 3, seed + 1);
         let grads = |state: &CpuState| {
-            let g = backward_in(&pool, state, &output_grads(&img, true), true).unwrap();
+            let g = backward_in(&pool, state, &output_grads(&img, true), true, 0).unwrap();
             let mut v = bits(&geometry_gradients(&g));
             v.extend(bits(&g.features));
             v
