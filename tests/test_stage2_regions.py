@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gear.pipeline.stage2.hypotheses import refine_rigid
-from gear.pipeline.stage2.regions import motion_regions
+from gear.pipeline.stage2.regions import motion_regions, refine_rigid
 from gear.pipeline.stage2.voxels import Scale, init_motion, split_static_dynamic
 from test_coarse import FRONT, box_surface, hinge_motion
 

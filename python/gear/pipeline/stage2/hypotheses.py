@@ -27,9 +27,6 @@ SWEEP_SAMPLES = 100
 SWEEP_SETTLE = 10
 SWEEP_KEEP = 3
 SWEEP_TARGETS = 3  # the largest target pieces a blob's turns start on
-# Trimmed ICP (refine_rigid) of a reading: steps, and centres fitted (an even subsample beyond).
-ICP_STEPS = 25
-ICP_POINTS = 500
 
 
 @dataclass
@@ -242,26 +239,6 @@ def settle(
         near = dist <= np.percentile(dist, 80)
         trans = trans + (tree.data[index[near]] - moved[near]).mean(axis=0)
     return trans
-
-
-def refine_rigid(
-    points: np.ndarray, rot: np.ndarray, trans: np.ndarray, tree: cKDTree, steps: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """(R, t) after `steps` of trimmed ICP of `points` onto the centres of `tree`: each step
-    pairs the nearest 80 % of the moved points with their nearest centres and solves the
-    rigid fit of those pairs (the part of a piece the target hides must not drag the rest)."""
-    rot, trans = np.asarray(rot, dtype=np.float64), np.asarray(trans, dtype=np.float64)
-    for _ in range(steps):
-        moved = points @ rot.T + trans
-        dist, index = tree.query(moved, k=1)
-        near = dist <= np.percentile(dist, 80)
-        src, dst = points[near], tree.data[index[near]]
-        src_c, dst_c = src.mean(axis=0), dst.mean(axis=0)
-        u, _, vt = np.linalg.svd((src - src_c).T @ (dst - dst_c))
-        flip = np.sign(np.linalg.det(vt.T @ u.T))
-        rot = vt.T @ np.diag([1.0, 1.0, flip]) @ u.T
-        trans = dst_c - rot @ src_c
-    return rot, trans
 
 
 def swept_hinges(

@@ -17,14 +17,17 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.cluster.vq import kmeans2
+from scipy.spatial import cKDTree
 
-from gear.pipeline.stage2.hypotheses import ICP_POINTS, ICP_STEPS, Hypothesis, refine_rigid
+from gear.pipeline.stage2.hypotheses import Hypothesis
 from gear.pipeline.stage2.voxels import MIN_PART_VOXELS, VoxelSplit, init_motion
 
 CHUNK_CELLS = 30
 MAX_CHUNKS = 32
 # Centres scored per piece (an even subsample beyond): the decisions rest on mean residuals.
 MAX_POINTS = 4000
+ICP_STEPS = 25
+ICP_POINTS = 500
 RESIDUAL_CAP_VOXELS = 1.5
 MERGE_COST = 0.04
 # Two motions agree when they move a piece's centres to within this many voxels of each other
@@ -72,6 +75,26 @@ def _residuals(split: VoxelSplit, points: np.ndarray, motions: list[Hypothesis])
         dist, _ = split.target_tree.query(moved, k=1)
         out[row] = np.minimum(dist / cap, 1.0)
     return out
+
+
+def refine_rigid(
+    points: np.ndarray, rot: np.ndarray, trans: np.ndarray, tree: cKDTree, steps: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) after `steps` of trimmed ICP of `points` onto the centres of `tree`: each step
+    pairs the nearest 80 % of the moved points with their nearest centres and solves the
+    rigid fit of those pairs (the part of a piece the target hides must not drag the rest)."""
+    rot, trans = np.asarray(rot, dtype=np.float64), np.asarray(trans, dtype=np.float64)
+    for _ in range(steps):
+        moved = points @ rot.T + trans
+        dist, index = tree.query(moved, k=1)
+        near = dist <= np.percentile(dist, 80)
+        src, dst = points[near], tree.data[index[near]]
+        src_c, dst_c = src.mean(axis=0), dst.mean(axis=0)
+        u, _, vt = np.linalg.svd((src - src_c).T @ (dst - dst_c))
+        flip = np.sign(np.linalg.det(vt.T @ u.T))
+        rot = vt.T @ np.diag([1.0, 1.0, flip]) @ u.T
+        trans = dst_c - rot @ src_c
+    return rot, trans
 
 
 def extra_residual(

@@ -14,8 +14,6 @@ from scipy.spatial import cKDTree
 from gear import geometry
 from gear.pipeline.stage2.hypotheses import (
     DETECT_OVERLAP,
-    ICP_POINTS,
-    ICP_STEPS,
     IDENTITY,
     MIN_OVERLAP,
     PARALLEL_COS,
@@ -25,7 +23,6 @@ from gear.pipeline.stage2.hypotheses import (
     edge_hinges,
     fit_plane,
     hinge_candidates,
-    refine_rigid,
     rod_hinges,
     swept_hinges,
 )
@@ -51,8 +48,6 @@ MIN_PART_VOXELS = 8  # a component smaller than this is no part
 FOLD_MARGIN = 0.15  # surface_fit a half-turn fold needs above a turn to go first
 BLOB_MARGIN = 0.05  # surface_fit a blob's turn needs above the best slide to be tried
 BLOB_LANDED = 0.8  # ... and the fraction of its cells it must land on target matter
-# A turn refined by ICP (refined_turn) may explain at most this much less of the change.
-REFINE_EXPLAINED_LOSS = 0.05
 
 MAX_TARGET_CANDIDATES = 16
 MAX_DENSE_CELLS = 1 << 26
@@ -312,18 +307,19 @@ def init_motion(
     runner-up of the other kind.
 
     Candidates: the plane-intersection hinges with every planar target piece (VoxelSplit.pieces)
-    above a size floor, a fifth of the cells or of `of_size` when given (for a chunk of a larger
-    piece, whose target is larger than the chunk's), when the cells' centres are planar; each
-    also about both edges of the slab (the two sides a hinge can be on); for a piece neither
-    planar nor a rod, the swept turns of blob_hinges unless `sweep` is False; the turn and the
-    fold whose centres land closest (VoxelSplit.surface_fit), and the best whole-voxel slide.
-    Among those explaining enough target change, the one landing most cells on target matter
-    wins (a hinge on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the
-    other kind follows when it lands within TIE_MARGIN of the winner (a hinge that close goes
-    first), or whatever it lands when it is a fold: a slab turned by half a turn shows the other
-    state its formerly hidden face, so half of it lands where that state saw nothing (the back
-    of a closed door), while a slide of the symmetric slab lands both faces; the voxels cannot
-    tell the two apart, the images can. A turn that goes first is refined by ICP (refined_turn).
+    above a size floor, a fifth of the cells or of `of_size` when given (for a chunk of a
+    larger piece, whose target is larger than the chunk's), when the cells' centres are
+    planar; each also about both edges of the slab (the two sides a hinge can be on); for a
+    piece neither planar nor a rod, the swept turns of blob_hinges unless `sweep` is False;
+    the one whose centres land closest
+    (VoxelSplit.surface_fit), and the best whole-voxel slide. Among those
+    explaining enough target change, the one landing most cells on target matter wins (a hinge
+    on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
+    follows when it lands within TIE_MARGIN of the winner (a hinge that close goes first), or
+    whatever it lands when it is a fold: a slab turned by half a turn shows the other state its
+    formerly hidden face, so half of it lands where that state saw nothing (the back of a closed
+    door), while a slide of the symmetric slab lands both faces; the voxels cannot tell the two
+    apart, the images can.
     """
     src_cells = np.argwhere(src_mask)
     canon_plane = fit_plane(points)
@@ -400,28 +396,4 @@ def init_motion(
         chosen = [best, runner]
     if spare_hinge is not None and any(h.kind == "hinge" for h in chosen):
         chosen.append(spare_hinge)
-    if chosen[0].kind == "hinge" and not chosen[0].fold:
-        # Only the winner: refined before the ranking, a drawer's turn settles into a slide
-        # with a hair of rotation and wins the near-tie as a "hinge".
-        chosen[0] = refined_turn(split, src_cells, points, chosen[0])
     return chosen
-
-
-def refined_turn(
-    split: VoxelSplit, src_cells: np.ndarray, points: np.ndarray, turn: Hypothesis
-) -> Hypothesis:
-    """`turn` of the cells `src_cells` (holding the centres `points`) after trimmed ICP of the
-    centres onto the target's (refine_rigid), when that lands the centres closer
-    (VoxelSplit.surface_fit), lands no fewer cells and explains at most REFINE_EXPLAINED_LOSS
-    less of the change; else `turn`. Turns are read off fitted planes, lines or a sweep in
-    whole steps: a stapler's lid, a blob at short budgets, got an axis 20 degrees off, and the
-    half of the lid that turn missed was cut off as a part of its own (with a wrong motion
-    that a symmetric piece allows)."""
-    fit_to = points[:: -(-len(points) // ICP_POINTS)]
-    rot, trans = refine_rigid(fit_to, turn.rot, turn.trans, split.target_tree, ICP_STEPS)
-    refined = split.score(src_cells, turn.kind, rot, trans)
-    closer = split.surface_fit(points, rot, trans) > split.surface_fit(points, turn.rot, turn.trans)
-    if (closer and refined.landed >= turn.landed
-            and refined.explained >= turn.explained - REFINE_EXPLAINED_LOSS):
-        return refined
-    return turn
