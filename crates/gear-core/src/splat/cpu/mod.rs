@@ -205,6 +205,12 @@ fn reduce(
     let n = bins.len;
     let channels = if features_grad { bins.channels } else { 0 };
     let view = View::new(&state.camera);
+    let input = Reduction {
+        bins,
+        records,
+        view: &view,
+        held,
+    };
     let mut means = vec![[0.0f32; 3]; n];
     let mut quats = vec![[0.0f32; 4]; n];
     let mut log_scales = vec![[0.0f32; 3]; n];
@@ -234,7 +240,7 @@ fn reduce(
                 channels,
             };
             if (c + 1) * chunk > held {
-                reduce_chunk(bins, records, &view, c * chunk, held, out);
+                reduce_chunk(&input, c * chunk, out);
             }
         });
     GaussianGradients {
@@ -246,40 +252,33 @@ fn reduce(
     }
 }
 
+/// What every chunk of [`reduce`] reads: the lists, the pair records, the camera and how many
+/// leading Gaussians are held (no gradients).
+struct Reduction<'a> {
+    bins: &'a Bins,
+    records: &'a [f32],
+    view: &'a View,
+    held: usize,
+}
+
 with_avx2!(
-    /// [`reduce`] of Gaussians `first..` into `out`, but for those below `held`.
-    fn reduce_chunk(bins: &Bins, records: &[f32], view: &View, first: usize, held: usize, out: GradientChunk) -> () =
+    /// [`reduce`] of Gaussians `first..` into `out`, but for the held ones.
+    fn reduce_chunk(input: &Reduction, first: usize, out: GradientChunk) -> () =
         reduce_chunk_any
 );
 
 /// [`reduce_chunk_body`] specialised for the channel count of the feature gradients (0
 /// without them).
 #[inline(always)]
-fn reduce_chunk_any(
-    bins: &Bins,
-    records: &[f32],
-    view: &View,
-    first: usize,
-    held: usize,
-    out: GradientChunk,
-) {
-    with_channels!(
-        out.channels,
-        reduce_chunk_body(bins, records, view, first, held, out)
-    )
+fn reduce_chunk_any(input: &Reduction, first: usize, out: GradientChunk) {
+    with_channels!(out.channels, reduce_chunk_body(input, first, out))
 }
 
 /// [`reduce_chunk`] with `C` the channel count if it is a compile-time constant
 /// ([`with_channels!`]).
 #[inline(always)]
-fn reduce_chunk_body<const C: usize>(
-    bins: &Bins,
-    records: &[f32],
-    view: &View,
-    first: usize,
-    held: usize,
-    out: GradientChunk,
-) {
+fn reduce_chunk_body<const C: usize>(input: &Reduction, first: usize, out: GradientChunk) {
+    let (bins, records, view, held) = (input.bins, input.records, input.view, input.held);
     let channels = channels::<C>(out.channels);
     // Held Gaussians have no gradients: a held Gaussian counts as one without pairs.
     let wanted = |g: usize| g >= held && !bins.pairs_of(g).is_empty();
