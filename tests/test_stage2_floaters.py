@@ -91,8 +91,23 @@ def test_an_unbinarised_model_is_passed_whole():
     rng = np.random.default_rng(0)
     pts = rng.random((500, 3))
     faint = model_of(pts, np.full(500, 0.2))
-    assert stage2_selection(faint)[0].all()
+    assert stage2_selection({"start": faint, "end": faint})["start"][0].all()
     mixed = model_of(pts, np.r_[np.full(400, 0.9), np.full(100, 0.1)])
-    keep = stage2_selection(mixed)[0]
-    assert keep[:400].all() and not keep[400:].any()
+    keep, opaque = stage2_selection({"start": mixed, "end": mixed})["end"]
+    assert keep[:400].all() and not keep[400:].any() and opaque == 400
     assert STAGE2_MIN_OPACITY == pytest.approx(0.5)
+
+
+def test_both_states_are_selected_by_one_rule():
+    """One state past the opaque fraction and the other not: both keep every centre (stage 2
+    reads motion off the difference of the two states, so haze kept in one state and dropped
+    in the other would read as moving matter); the opaque counts are each state's own."""
+    rng = np.random.default_rng(1)
+    pts = rng.random((500, 3))
+    binarised = model_of(pts, np.r_[np.full(300, 0.9), np.full(200, 0.1)])  # 60 % opaque
+    hazy = model_of(pts, np.r_[np.full(200, 0.9), np.full(300, 0.1)])  # 40 % opaque
+    chosen = stage2_selection({"start": hazy, "end": binarised})
+    assert chosen["start"][0].all() and chosen["end"][0].all()
+    assert (chosen["start"][1], chosen["end"][1]) == (200, 300)
+    both = stage2_selection({"start": binarised, "end": binarised})
+    assert not both["start"][0][300:].any() and both["start"][0][:300].all()
