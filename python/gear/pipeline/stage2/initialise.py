@@ -88,7 +88,7 @@ def initialise_parts(models: dict[str, Gaussians], views: dict[str, list[TrainVi
     c = config
     t0 = time.perf_counter()
     centres = {s: models[s]["means"].detach().numpy() for s in STATES}
-    selection = stage2_selection({s: models[s] for s in STATES})
+    selection = stage2_selection(models)
     keep = {s: selection[s][0] for s in STATES}
     init = coarse_init(
         centres["start"][keep["start"]],
