@@ -448,3 +448,54 @@ def test_append_resumes_an_interrupted_run_and_replaces_a_foreign_one(tmp_path, 
     calls.clear()
     assert main(args) == 0  # without --append: every run starts over
     assert [mode for _, mode in calls] == ["overwrite"] * 4
+
+
+def test_append_scores_a_finished_run_of_the_same_scene_and_configuration(tmp_path,
+                                                                          monkeypatch):
+    # A run that finished before the benchmark scored it (trained by hand, or its scoring
+    # interrupted: no row in accuracy.csv) is scored as it is under --append, once its last
+    # checkpoint shows the same scene and configuration; a run of another configuration is
+    # trained again. Real (tiny) training, so that the checkpoint's fingerprint is real.
+    import gear.bench.accuracy as accuracy
+    import gear.train as train_mod
+    from gear.synth import generate
+
+    monkeypatch.setattr(accuracy, "machine_description", lambda: "test machine")
+    scene = generate("fridge", tmp_path / "fridge", res=24, views=4, test_views=1)
+    other = generate("drawer_cabinet", tmp_path / "other", res=24, views=4, test_views=1)
+    tiny = dict(init_max_points=400, max_gaussians=800, num_parts=2, classify_tune_steps=2,
+                mesh_voxel=0.08, mesh_trunc=0.24)
+    config_file = tmp_path / "tiny.json"
+    config_file.write_text(json.dumps(tiny))
+    out = tmp_path / "bench"
+    args = ["bench", "accuracy", "--scenes", str(scene), "--profiles", "quick:20",
+            "--config", str(config_file), "--out", str(out)]
+    assert main(args) == 0
+    first = list(csv.DictReader(open(out / "accuracy.csv")))
+    run_dir = out / "accuracy_runs" / "outputs" / f"fridge-quick:20-{accuracy.config_label(tiny)}"
+    config = budget_config("quick:20")[0].replace(**tiny)
+    found = train_mod.finished_run(scene, run_dir, config)
+    assert found is not None and found.timings == json.loads(
+        (run_dir / "complete.json").read_text())["timings"]
+    assert train_mod.finished_run(other, run_dir, config) is None  # another scene
+    assert train_mod.finished_run(scene, run_dir, config.replace(seed=1)) is None
+
+    trained = []
+    real_train = train_mod.train
+
+    def counting_train(*a, **k):
+        trained.append(k)
+        return real_train(*a, **k)
+
+    monkeypatch.setattr(train_mod, "train", counting_train)
+    (out / "accuracy.csv").unlink()  # the run is in its folder, not in the table
+    assert main([*args, "--append"]) == 0
+    assert trained == []
+    again = list(csv.DictReader(open(out / "accuracy.csv")))
+    assert [r["axis_ang"] for r in again] == [r["axis_ang"] for r in first]
+    assert [r["total_s"] for r in again] == [r["total_s"] for r in first]
+    assert first[0]["cpu_s"] and not again[0]["cpu_s"]  # not trained here: CPU time unknown
+
+    (out / "accuracy.csv").unlink()
+    assert main([*args, "--append", "--seed", "1"]) == 0  # another configuration: trained
+    assert [k.get("overwrite") for k in trained] == [True]

@@ -30,7 +30,7 @@ from gear.pipeline.runner import Runner, stops_interrupt
 from gear.pipeline.stage1 import reconstruct_states
 from gear.pipeline.stage2 import Stage2Result, initialise_parts
 from gear.pipeline.stage3 import Stage3Result, refine_parts
-from gear.run_folder import RunFolder
+from gear.run_folder import COMPLETE, RunFolder
 
 
 @dataclass
@@ -51,11 +51,36 @@ def train(scene_dir: Path, out_dir: Path, config: TrainConfig, *, resume: bool =
         return _train(scene, Path(scene_dir), folder, config, resume, quiet)
 
 
+def finished_run(scene_dir: Path, out_dir: Path, config: TrainConfig) -> TrainResult | None:
+    """The result of the finished run in `out_dir` when it was trained on this scene with
+    this configuration (its last checkpoint's scene fingerprint and options match, as for
+    --resume), else None: a benchmark scores such a run instead of training it again."""
+    out_dir = Path(out_dir)
+    if not (out_dir / COMPLETE).is_file() or not (out_dir / "joints.json").is_file():
+        return None
+    try:
+        state = checkpoint.load(out_dir / "checkpoints")
+        if state is None:
+            return None
+        checkpoint.check_resumable(state, scene_fingerprint(load_scene(scene_dir), scene_dir),
+                                   json.loads(config.to_json()))
+    except ValueError:  # unreadable, or another scene or configuration (RunFolderError)
+        return None
+    found = json.loads((out_dir / "joints.json").read_text())
+    summary = json.loads((out_dir / COMPLETE).read_text())
+    return TrainResult(found["joints"], found["canonical"], summary.get("timings", {}))
+
+
+def scene_fingerprint(scene: Scene, scene_dir: Path) -> dict:
+    """The scene's files and cameras, as checkpoints record them (checkpoint.scene_fingerprint)."""
+    return checkpoint.scene_fingerprint(
+        scene_dir, [v.camera for s in STATES for vs in scene.views[s].values() for v in vs])
+
+
 def _train(scene: Scene, scene_dir: Path, folder: RunFolder, config: TrainConfig, resume: bool,
            quiet: bool) -> TrainResult:
     out_dir = folder.path
-    fingerprint = checkpoint.scene_fingerprint(
-        scene_dir, [v.camera for s in STATES for vs in scene.views[s].values() for v in vs])
+    fingerprint = scene_fingerprint(scene, scene_dir)
     state = checkpoint.load(out_dir / "checkpoints") if resume else None
     if resume and state is None:
         raise ValueError(f"--resume: no checkpoint in {out_dir / 'checkpoints'}")

@@ -167,8 +167,10 @@ def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: d
     """Train and score one configuration; failures are recorded, not raised. `fixed` fields
     (--config) apply to the budget as given, the variant's `overrides` after them. With
     `resume`, an interrupted run of the same configuration in `out_dir` continues from its
-    checkpoint."""
+    checkpoint, and a finished one (a run trained before, or whose scoring was interrupted) is
+    scored as it is (its CPU time unknown)."""
     from gear.evaluate import evaluate
+    from gear.train import finished_run
 
     config, iterations = budget_config(budget, seed)
     config = config.replace(**(fixed or {})).replace(**overrides)
@@ -177,8 +179,12 @@ def run_one(scene: str, scene_dir: Path, budget: str, variant: str, overrides: d
     record = Run(scene, budget, variant, iterations)
     try:
         t0, cpu0 = time.perf_counter(), time.process_time()
-        result = train_or_resume(scene_dir, Path(out_dir), config, resume)
-        record.cpu_seconds = time.process_time() - cpu0
+        result = finished_run(scene_dir, Path(out_dir), config) if resume else None
+        if result is None:
+            result = train_or_resume(scene_dir, Path(out_dir), config, resume)
+            record.cpu_seconds = time.process_time() - cpu0
+        else:
+            print("finished before, scored as it is: ", end="", flush=True)
         record.timings = dict(result.timings) or {"total": time.perf_counter() - t0}
         metrics = evaluate(out_dir, scene_dir)
         # Per-joint rows and skip reasons stay with the run, as `gear eval` leaves them.
