@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gear.data.scene import STATES, Scene
 from gear.run_folder import RunFolderError
 from gear.splats import Gaussians
 
@@ -54,9 +55,11 @@ def load(directory: Path) -> dict | None:
         raise ValueError(f"{path}: cannot read the checkpoint ({err})") from err
 
 
-def scene_fingerprint(scene_dir: Path, cameras: list) -> dict:  # list[Camera]
-    """What a checkpoint was made from: the scene's files (path -> size; `gt/` is left out, only
-    evaluation reads it) and a digest of its cameras (intrinsics, size, pose)."""
+def scene_fingerprint(scene_dir: Path, scene: Scene) -> dict:
+    """What a checkpoint was made from: the files of the scene folder (path -> size; `gt/` is
+    left out, only evaluation reads it) and a digest of every view's camera (intrinsics, size,
+    pose) of the loaded `scene`."""
+    cameras = [v.camera for s in STATES for vs in scene.views[s].values() for v in vs]
     scene_dir = Path(scene_dir)
     files = {str(p.relative_to(scene_dir)): p.stat().st_size
              for p in sorted(scene_dir.rglob("*"))

@@ -62,25 +62,20 @@ def finished_run(scene_dir: Path, out_dir: Path, config: TrainConfig) -> TrainRe
         state = checkpoint.load(out_dir / "checkpoints")
         if state is None:
             return None
-        checkpoint.check_resumable(state, scene_fingerprint(load_scene(scene_dir), scene_dir),
+        checkpoint.check_resumable(state, checkpoint.scene_fingerprint(scene_dir,
+                                                                       load_scene(scene_dir)),
                                    json.loads(config.to_json()))
-    except ValueError:  # unreadable, or another scene or configuration (RunFolderError)
+        found = json.loads((out_dir / "joints.json").read_text())
+        summary = json.loads((out_dir / COMPLETE).read_text())
+    except ValueError:  # unreadable, or another scene or configuration: trained again
         return None
-    found = json.loads((out_dir / "joints.json").read_text())
-    summary = json.loads((out_dir / COMPLETE).read_text())
     return TrainResult(found["joints"], found["canonical"], summary.get("timings", {}))
-
-
-def scene_fingerprint(scene: Scene, scene_dir: Path) -> dict:
-    """The scene's files and cameras, as checkpoints record them (checkpoint.scene_fingerprint)."""
-    return checkpoint.scene_fingerprint(
-        scene_dir, [v.camera for s in STATES for vs in scene.views[s].values() for v in vs])
 
 
 def _train(scene: Scene, scene_dir: Path, folder: RunFolder, config: TrainConfig, resume: bool,
            quiet: bool) -> TrainResult:
     out_dir = folder.path
-    fingerprint = scene_fingerprint(scene, scene_dir)
+    fingerprint = checkpoint.scene_fingerprint(scene_dir, scene)
     state = checkpoint.load(out_dir / "checkpoints") if resume else None
     if resume and state is None:
         raise ValueError(f"--resume: no checkpoint in {out_dir / 'checkpoints'}")

@@ -87,9 +87,7 @@ def phases(run_dir: Path, scene_dir: Path) -> Iterator[tuple[str, Stage, int]]:
                              "(a checkpoint with stage-1 models and stage 2's parts)")
     config = TrainConfig(**saved["config"])
     scene = load_scene(scene_dir)
-    fingerprint = checkpoint.scene_fingerprint(
-        scene_dir, [v.camera for s in STATES for vs in scene.views[s].values() for v in vs])
-    if fingerprint != saved.get("scene"):
+    if checkpoint.scene_fingerprint(scene_dir, scene) != saved.get("scene"):
         raise RunFolderError(f"{scene_dir}: not the scene {run_dir} was trained on")
     views = {s: [TrainView.from_view(v) for v in scene.train(s)] for s in STATES}
     models = Stage1Result.from_checkpoint(saved["models"]).models
