@@ -3,6 +3,8 @@ motion, or staying put, explains about as well as its own joins it; distinct par
 drawers pulled by the same travel, stay apart. Rendered with the deterministic torch
 reference on tiny scenes: a static back wall (part 0) and planks in front of it."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -11,11 +13,13 @@ from gear import geometry
 from gear.articulation import PartMotion
 from gear.config import make_config
 from gear.outputs import drop_empty_parts
-from gear.pipeline.stage3 import Refine, merge
+from gear.pipeline.runner import Runner
+from gear.pipeline.stage2 import Stage2Result
+from gear.pipeline.stage3 import Refine, merge, refine_parts
 from gear.pipeline.stage3.joint_types import image_loss
 from gear.pipeline.stage3.merge import FORGET_LOGIT, merge_parts, moved_like
 from gear.splat_reference import rasterize_dense
-from gear.splats import rendering
+from gear.splats import Gaussians, rendering
 from stage3_scenes import OFFSET, grid_gaussians, rot_z, views_of
 
 PULL = np.array([0.0, -0.25, 0.0])
@@ -126,6 +130,32 @@ def test_merge_at_classification_then_dropped_from_the_outputs():
     assert any(e.get("event") == "joint_classification" for e in s.events)
     g, motion, dropped = drop_empty_parts(s.gaussians, s.motion)
     assert dropped == [2] and motion.num_parts == 2 and g.num_parts == 2
+
+
+def test_parts_read_twice_merge_again_at_the_end_of_stage3(tmp_path):
+    """A fragment whose motion reaches its part's only after the joint-type decision (here
+    never reached) still joins it: stage 3 merges once more before its result."""
+    blocks = [(wall(), 0), (plank(-0.3, 0.0), 1), (plank(0.12, 0.3, columns=2), 2)]
+    g = grid_gaussians(blocks)
+    truth = [hinge(40), hinge(40)]
+    views = {"start": views_of(g, PartMotion(g.num_parts)),
+             "end": views_of(g, PartMotion.from_rt(truth))}
+    cfg = make_config("quick", dict(em_interval=2, stage3_densify_until=0, stage3_iterations=2,
+                                    joint_classify_iteration=10))
+    logits = g["logits"].detach().clone()
+    model = Gaussians({k: v.detach() for k, v in g.params.items() if k != "logits"})
+    coarse = Stage2Result("start", 3, logits, [[m] for m in truth], 0.1)
+    runner = Runner(tmp_path, cfg, quiet=True)
+    try:
+        result = refine_parts({"start": model}, coarse, views, cfg, runner, None)
+    finally:
+        runner.log.close()
+    assert result is not None
+    assert set(result.gaussians.part_ids().tolist()) == {0, 1}
+    records = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    merges = [r for r in records if r.get("event") == "part_merge"]
+    assert len(merges) == 1 and merges[0]["when"] == "end"
+    assert [(m["part"], m["into"]) for m in merges[0]["merges"]] == [(2, 1)]
 
 
 def test_merging_can_be_turned_off():

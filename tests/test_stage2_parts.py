@@ -7,6 +7,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from gear.articulation import PartMotion
+from gear.pipeline.stage2 import voxels
 from gear.pipeline.stage2.hypotheses import edge_hinges, fit_plane, rod_hinges
 from gear.pipeline.stage2.parts import _moves_along, coarse_init
 from gear.pipeline.stage2.voxels import Scale, split_static_dynamic
@@ -306,3 +307,44 @@ def test_a_blob_that_is_neither_plane_nor_rod_turns_on_a_hinge():
     assert turn < 5.0
     corner = np.array([0.5, 0.6, 0.7])
     assert np.linalg.norm(got_rot @ corner + got_trans - (want_rot @ corner + want_trans)) < 0.08
+
+
+PADDLE_PIVOT = np.array([0.05, 0.0, 0.0])
+
+
+def paddle_on_a_plate(deg: float, n: int = 40000, seed: int = 0):
+    """A flat paddle (an L of two slabs, 8 mm thick) beside a flat plate, turned by `deg`
+    within their common plane about a vertical axis through PADDLE_PIVOT: a blade of scissors
+    opening. Sampled densely, as a long run's centres are (their spacing far below a voxel)."""
+    rng = np.random.default_rng(seed)
+
+    def state(turned: bool) -> np.ndarray:
+        plate = box_surface([-0.3, -0.3, 0.0], [0.0, 0.3, 0.008], n // 2, rng)
+        paddle = np.concatenate([box_surface([0.0, -0.12, 0.0], [0.3, 0.12, 0.008], n // 4, rng),
+                                 box_surface([0.3, -0.12, 0.0], [0.4, 0.0, 0.008], n // 8, rng)])
+        if turned:
+            rot, trans = hinge_motion([0, 0, 1], PADDLE_PIVOT, deg)
+            paddle = paddle @ rot.T + trans
+        return np.concatenate([plate, paddle])
+
+    return state(False), state(True)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_flat_part_turned_within_its_plane_is_a_hinge_about_its_normal(seed):
+    """No two planes intersect to give the axis of a slab turned within its own plane, and the
+    slab is no rod: only the turns about its normal (voxels.in_plane_turns) find it."""
+    start, end = paddle_on_a_plate(60.0, seed=seed)
+    result = coarse_init(start, end)
+    assert result.num_parts == 2, result.notes
+    (joint,) = PartMotion.from_rt(result.motions, dtype=torch.float64).joints(np.zeros(3))
+    assert joint["type"] == "revolute"
+    assert abs(joint["angle_deg"] - 60.0) <= 3.0
+    assert angle_between(joint["axis"], [0, 0, 1]) < 3.0
+    assert line_distance(joint["origin"], PADDLE_PIVOT, np.array([0, 0, 1.0])) < 0.03
+
+
+def test_without_turns_about_the_normal_a_flat_turn_is_missed(monkeypatch):
+    start, end = paddle_on_a_plate(60.0)
+    monkeypatch.setattr(voxels, "in_plane_turns", lambda *args: [])
+    assert coarse_init(start, end).num_parts == 1

@@ -53,6 +53,12 @@ class Plane:
         return self.aspect > PLANE_ASPECT
 
     @property
+    def is_flat(self) -> bool:
+        """Much thinner than its two other sides: a slab or a blade, with a normal of its own
+        (a rod passes is_plane, but its normal is any direction across it)."""
+        return self.extents[1] > PLANE_ASPECT * max(self.extents[2], 1e-12)
+
+    @property
     def is_rod(self) -> bool:
         """Much longer than wide: a lever or a handle, whose longest direction turns."""
         return self.extents[0] > PLANE_ASPECT * max(self.extents[1], 1e-12)
@@ -248,10 +254,11 @@ def swept_hinges(
     tree: cKDTree,
     fit: Callable[[np.ndarray, np.ndarray, np.ndarray], float],
     keep: int = SWEEP_KEEP,
+    step_deg: float = SWEEP_STEP_DEG,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Turns of a piece with neither a plane nor a long direction (a stapler's lid that a short
     stage 1 leaves a blob): no two planes or lines to intersect, so each axis direction of
-    `axes` (near-duplicates skipped) is swept through every SWEEP_STEP_DEG. Each turn first
+    `axes` (near-duplicates skipped) is swept through every `step_deg`. Each turn first
     puts the piece's centroid on each of `starts` (where target pieces are), then settles its
     translation on the target centres (`tree`, settle): briefly for every turn, longer for the
     best few. The `keep` turns that `fit(points, R, t)` (higher is better, on a sample of the
@@ -267,7 +274,7 @@ def swept_hinges(
             unique.append(a)
     scored = []
     for a in unique:
-        for angle in np.deg2rad(np.arange(SWEEP_STEP_DEG, 360, SWEEP_STEP_DEG)):
+        for angle in np.deg2rad(np.arange(step_deg, 360, step_deg)):
             rot, _ = rotation_about_line(a, np.zeros(3), float(angle))
             for start in starts:
                 trans = settle(coarse, rot, np.asarray(start) - rot @ centroid, tree, 2)

@@ -17,8 +17,10 @@ from gear.pipeline.stage2.hypotheses import (
     IDENTITY,
     MIN_OVERLAP,
     PARALLEL_COS,
+    SWEEP_STEP_DEG,
     SWEEP_TARGETS,
     Hypothesis,
+    Plane,
     correlate,
     edge_hinges,
     fit_plane,
@@ -48,6 +50,7 @@ MIN_PART_VOXELS = 8  # a component smaller than this is no part
 FOLD_MARGIN = 0.15  # surface_fit a half-turn fold needs above a turn to go first
 BLOB_MARGIN = 0.05  # surface_fit a blob's turn needs above the best slide to be tried
 BLOB_LANDED = 0.8  # ... and the fraction of its cells it must land on target matter
+IN_PLANE_STEP_DEG = 2.0  # angle step of a flat piece's turns about its normal (in_plane_turns)
 
 MAX_TARGET_CANDIDATES = 16
 MAX_DENSE_CELLS = 1 << 26
@@ -156,11 +159,16 @@ class VoxelSplit:
 
     def surface_fit(self, points: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> float:
         """How closely `points` moved by p -> R p + t lie on the target's centres: the mean of
-        exp(-(d / 2s)^2) over their distances d to the nearest target centre, s the target's
-        median centre spacing. Unlike the voxel scores it varies smoothly with the motion."""
+        exp(-(d / w)^2) over their distances d to the nearest target centre, w twice the
+        target's median centre spacing or a voxel, whichever is larger. Unlike the voxel
+        scores it varies smoothly with the motion. Not the spacing alone: the two states'
+        reconstructions agree to about a voxel, and a long run packs its centres 20-50 times
+        closer than that, where only exact coincidences would count (a blade turned by the
+        right angle scored 0.02, as low as any wrong turn)."""
         moved = points @ np.asarray(rot).T + np.asarray(trans)
         dist, _ = self.target_tree.query(moved, k=1)
-        return float(np.exp(-((dist / (2 * self.spacing)) ** 2)).mean())
+        width = max(2 * self.spacing, self.grid.voxel_size)
+        return float(np.exp(-((dist / width) ** 2)).mean())
 
     def best_slide(self, src_mask: np.ndarray) -> np.ndarray | None:
         """The whole-voxel translation landing most of `src_mask` on target matter among those
@@ -281,12 +289,42 @@ def blob_hinges(
     land nearly all of the piece (BLOB_LANDED of its cells on target matter) and its centres
     closer than the best slide does (by BLOB_MARGIN in VoxelSplit.surface_fit) are kept: two
     touching parts, one blob, are left to the slide and the split by motion."""
+    planes = _target_planes(split, floor)
+    axes = [*fit_plane(points).axes, *fit_plane(split.target_tree.data).axes,
+            *(a for p in planes for a in p.axes)]
+    return _swept_turns(split, src_mask, points, planes, axes, SWEEP_STEP_DEG)
+
+
+def in_plane_turns(
+    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, floor: float
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Turns of the flat piece `src_mask` (holding `points`) about its own normal, kept as in
+    blob_hinges: a blade of scissors, a swivelling lid. A slab turned within its plane stays
+    parallel to itself, so no two planes intersect to give the axis, and a long piece cut
+    into pieces by what the other state covers leaves no rod to align; a slide lands each
+    piece nearly whole and fragments the part. The angle is swept finer than a blob's, one
+    axis instead of a dozen: a blade's far end moves by its length times the angle's error."""
+    planes = _target_planes(split, floor)
+    return _swept_turns(split, src_mask, points, planes, [fit_plane(points).normal],
+                        IN_PLANE_STEP_DEG)
+
+
+def _target_planes(split: VoxelSplit, floor: float) -> list[Plane]:
+    """The planes of the SWEEP_TARGETS largest target pieces of at least `floor` voxels."""
     target = split.target_tree.data
-    pieces = [target[inside] for size, inside in split.pieces[:SWEEP_TARGETS] if size >= floor]
-    planes = [fit_plane(piece) for piece in pieces]
-    axes = [*fit_plane(points).axes, *fit_plane(target).axes, *(a for p in planes for a in p.axes)]
-    # Its centroid and points a quarter of its two largest extents away: the target's piece
-    # is often a different part of the blob than the canonical one, so centroids mislead.
+    return [fit_plane(target[inside]) for size, inside in split.pieces[:SWEEP_TARGETS]
+            if size >= floor]
+
+
+def _swept_turns(
+    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, planes: list[Plane],
+    axes: list[np.ndarray], step_deg: float,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The swept turns (hypotheses.swept_hinges, every `step_deg` about each of `axes`) of the
+    cells `src_mask` holding `points` that land BLOB_LANDED of its cells and fit its centres
+    closer than the best slide by BLOB_MARGIN. Each starts with the centroid on the target
+    `planes`' centroids, and points a quarter of their two largest extents away: the target's
+    piece is often a different part of the blob than the canonical one, so centroids mislead."""
     starts = [p.centroid + f * e * a for p in planes
               for e, a in zip(p.extents[:2], p.axes[:2], strict=True) for f in (-0.25, 0.25)]
     starts += [p.centroid for p in planes]
@@ -294,7 +332,7 @@ def blob_hinges(
     slide_fit = 0.0 if shift is None else split.surface_fit(points, np.eye(3), shift)
     cells = np.argwhere(src_mask)
     return [(r, t) for r, t in swept_hinges(points, axes, starts, split.target_tree,
-                                            split.surface_fit)
+                                            split.surface_fit, step_deg=step_deg)
             if split.surface_fit(points, r, t) > slide_fit + BLOB_MARGIN
             and split.score(cells, "hinge", r, t).landed >= BLOB_LANDED]
 
@@ -343,6 +381,9 @@ def init_motion(
                     hyp = split.score(src_cells, "hinge", r, t)
                     hyp.fold = folded
                     candidates.append(hyp)
+        if canon_plane.is_flat and sweep:
+            turns = in_plane_turns(split, src_mask, points, floor)
+            candidates += [split.score(src_cells, "hinge", r, t) for r, t in turns]
     elif sweep:
         blobs = blob_hinges(split, src_mask, points, floor)
         candidates += [split.score(src_cells, "hinge", r, t) for r, t in blobs]
