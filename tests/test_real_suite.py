@@ -111,17 +111,13 @@ TINY_BUDGET = "quick:150"
 # widths in torch and the rasterizer), so an object on the edge of being recovered can pass on one
 # machine and fail on another: its xfail is not strict.
 SMALL_OBJECTS = [
-    pytest.param("scissors", marks=pytest.mark.xfail(strict=False, reason=(
-        "at this budget a blade is sometimes sampled in fragments that stage 2 gives motions "
-        "of their own: K and types right on training seeds 0-3 with 3 of 4 since stage 3 "
-        "merges parts read twice (1 of 4 before); seed 0 still fails: stage 2 cuts the blade "
-        "into three pieces, each with a slide that fits it better than its neighbour's"))),
+    "scissors",
     "box",
     pytest.param("eyeglasses", marks=pytest.mark.xfail(strict=False, reason=(
         "thin temples: at this budget stage 1 may sample a temple in fragments in both "
         "states, and stage 2 then gives a fragment a motion of its own: K and types right on "
         "training seeds 0-3 with 3 of 4 since stage 3 merges parts read twice (2 of 4 "
-        "before; seed 1 ends with K = 6); another CPU's rounding can do the same"))),
+        "before; seed 1 ends with K = 5); another CPU's rounding can do the same"))),
     "faucet",
 ]
 
