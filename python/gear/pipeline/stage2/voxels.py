@@ -348,9 +348,9 @@ def init_motion(
     above a size floor, a fifth of the cells or of `of_size` when given (for a chunk of a
     larger piece, whose target is larger than the chunk's), when the cells' centres are
     planar; each also about both edges of the slab (the two sides a hinge can be on); for a
-    piece neither planar nor a rod, the swept turns of blob_hinges unless `sweep` is False;
-    the one whose centres land closest
-    (VoxelSplit.surface_fit), and the best whole-voxel slide. Among those
+    piece neither planar nor a rod, the swept turns of blob_hinges, and for a flat one its
+    turns about its normal (in_plane_turns), both unless `sweep` is False; the one whose
+    centres land closest (VoxelSplit.surface_fit), and the best whole-voxel slide. Among those
     explaining enough target change, the one landing most cells on target matter wins (a hinge
     on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
     follows when it lands within TIE_MARGIN of the winner (a hinge that close goes first), or
