@@ -51,6 +51,7 @@ FOLD_MARGIN = 0.15  # surface_fit a half-turn fold needs above a turn to go firs
 BLOB_MARGIN = 0.05  # surface_fit a blob's turn needs above the best slide to be tried
 BLOB_LANDED = 0.8  # ... and the fraction of its cells it must land on target matter
 IN_PLANE_STEP_DEG = 2.0  # angle step of a flat piece's turns about its normal (in_plane_turns)
+IN_PLANE_COS = 0.99  # ... onto target pieces whose normals lie within 8 degrees of its own
 
 MAX_TARGET_CANDIDATES = 16
 MAX_DENSE_CELLS = 1 << 26
@@ -298,15 +299,22 @@ def blob_hinges(
 def in_plane_turns(
     split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, floor: float
 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Turns of the flat piece `src_mask` (holding `points`) about its own normal, kept as in
-    blob_hinges: a blade of scissors, a swivelling lid. A slab turned within its plane stays
-    parallel to itself, so no two planes intersect to give the axis, and a long piece cut
-    into pieces by what the other state covers leaves no rod to align; a slide lands each
-    piece nearly whole and fragments the part. The angle is swept finer than a blob's, one
-    axis instead of a dozen: a blade's far end moves by its length times the angle's error."""
-    planes = _target_planes(split, floor)
-    return _swept_turns(split, src_mask, points, planes, [fit_plane(points).normal],
-                        IN_PLANE_STEP_DEG)
+    """Turns of the flat piece `src_mask` (holding `points`) about its own normal onto the
+    target pieces parallel to it, kept as in blob_hinges: a blade of scissors, a swivelling
+    lid. A slab turned within its plane stays parallel to itself, so no two planes intersect
+    to give the axis, and a long piece cut into pieces by what the other state covers leaves
+    no rod to align; a slide lands each piece nearly whole and fragments the part. Only onto
+    flat pieces within IN_PLANE_COS of parallel (closer than PARALLEL_COS: the real box's
+    flap, closed, lies 13 degrees off the other flap opened, and a small turn within its plane
+    landed it on the box's rim better than its own hinge). The angle is swept finer than a
+    blob's, one axis instead of a dozen: a blade's far end moves by its length times the
+    angle's error."""
+    normal = fit_plane(points).normal
+    planes = [p for p in _target_planes(split, floor)
+              if p.is_flat and abs(float(p.normal @ normal)) > IN_PLANE_COS]
+    if not planes:
+        return []
+    return _swept_turns(split, src_mask, points, planes, [normal], IN_PLANE_STEP_DEG)
 
 
 def _target_planes(split: VoxelSplit, floor: float) -> list[Plane]:
