@@ -137,6 +137,12 @@ class Runner:
     def timed(self, name: str, seconds: float) -> None:
         self.timings[name] = self.timings.get(name, 0.0) + seconds
 
+    def write_events(self, stage: IterativeStage, **extra: object) -> None:
+        """Logs the events `stage` has gathered (with the `extra` fields) and clears them."""
+        for event in stage.events:
+            self.log.write({"stage": stage.name, **extra, **event})
+        stage.events.clear()
+
     def run(self, stage: IterativeStage, start: int, total: int) -> None:
         """Iterations start..total-1 of `stage`, with progress, logging and checkpoints; on
         Ctrl-C, SIGTERM or SIGHUP, a checkpoint at the iteration boundary and
@@ -154,9 +160,7 @@ class Runner:
                                     "phase": phase, **stage.snapshot()})
                 previous_phase = phase
                 terms = stage.step(it)
-                for event in stage.events:
-                    self.log.write({"stage": stage.name, **event})
-                stage.events.clear()
+                self.write_events(stage)
                 if it % c.log_every == 0 or it + 1 == total:
                     record = {"stage": stage.name, "iteration": it,
                               "gaussians": len(stage.gaussians),

@@ -147,13 +147,11 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
         stage, start = refine_state(g, base.clone(), coarse, views, c), 0
     runner.run(stage, start, c.stage3_iterations)
     # Again at the end: a fragment's motion may reach its part's only after the merge at the
-    # joint-type decision (a scissors blade's tip, given a turn of 8 degrees by stage 2, ended
-    # within 1 degree of the blade's 34 and stayed a part).
+    # joint-type decision (a scissors blade's tip, given a turn of 8 degrees by an older
+    # stage 2, ended within 1 degree of the blade's 34 and stayed a part).
     started = time.perf_counter()
     stage.merge_parts_read_twice()
-    for event in stage.events:
-        runner.log.write({"stage": stage.name, "when": "end", **event})
-    stage.events.clear()
+    runner.write_events(stage, when="end")
     runner.timed(stage.name, time.perf_counter() - started)
     result = stage.result()
     runner.finished("refined", result.to_checkpoint())
