@@ -110,7 +110,10 @@ def test_densify_statistics_are_the_ndc_gradient_norm_of_visible_gaussians():
 def test_gaussian_budget_per_pixel_of_the_largest_view():
     small = Camera(world_to_cam=np.eye(4), fx=10.0, fy=10.0, cx=4.0, cy=3.0, width=8, height=6)
     large = Camera(world_to_cam=np.eye(4), fx=10.0, fy=10.0, cx=8.0, cy=6.0, width=16, height=12)
-    assert gaussian_budget(make_config("fast"), [small, large]) == 1_000_000  # no per-pixel cap
+    assert gaussian_budget(make_config("full"), [small, large]) == 1_000_000  # no per-pixel cap
+    assert gaussian_budget(make_config("fast"), [small, large]) == 8 * 16 * 12  # fast: 8 / px
+    uncapped = make_config("fast", {"max_gaussians_per_pixel": None})
+    assert gaussian_budget(uncapped, [small, large]) == 1_000_000
     capped = make_config("fast", {"max_gaussians_per_pixel": 2.5})
     assert gaussian_budget(capped, [small, large]) == int(2.5 * 16 * 12)
     both = make_config("quick", {"max_gaussians_per_pixel": 1000.0})

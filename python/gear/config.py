@@ -208,10 +208,13 @@ def _profile_changes(profile: str) -> dict[str, Any]:
     if profile == "full":
         return {}
     if profile == "fast":  # the paper's fast version: 10k + 10k, events rescaled by 1/3
+        # At most 8 Gaussians per pixel: no built-in object reaches it at 128² or 256², but a
+        # textured real capture grows past 300k without it, at twice the time for the same
+        # joints (docs/training.md, "A cap that binds only on real scenes").
         return dict(
             stage1_iterations=10_000, stage3_iterations=10_000, densify_until=5000,
             stage3_densify_until=5000, joint_classify_iteration=3333,
-            em_refine_joint_iterations=3333,
+            em_refine_joint_iterations=3333, max_gaussians_per_pixel=8.0,
         )
     if profile == "quick":  # demo / CI: a few hundred iterations, few Gaussians, 64-128 px
         return dict(
