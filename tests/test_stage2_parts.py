@@ -348,3 +348,17 @@ def test_without_turns_about_the_normal_a_flat_turn_is_missed(monkeypatch):
     start, end = paddle_on_a_plate(60.0)
     monkeypatch.setattr(voxels, "in_plane_turns", lambda *args: [])
     assert coarse_init(start, end).num_parts == 1
+
+
+def test_surface_fit_tolerates_a_voxel_of_disagreement_between_dense_states():
+    """The two states' reconstructions agree to about a voxel, however densely sampled: a
+    piece half a voxel off its target still fits, three voxels off it does not. (Twice the
+    centres' spacing, a sixteenth of a voxel here, would score both 0.)"""
+    rng = np.random.default_rng(4)
+    plate = box_surface([0.0, 0.0, 0.0], [1.0, 1.0, 0.01], 200_000, rng)
+    split = split_static_dynamic(plate, plate, 0.05)
+    assert 2 * split.spacing < 0.1 * split.grid.voxel_size
+    piece = plate[:2000]
+    lift = np.array([0.0, 0.0, 1.0]) * split.grid.voxel_size
+    assert split.surface_fit(piece, np.eye(3), 0.5 * lift) > 0.7
+    assert split.surface_fit(piece, np.eye(3), 3.0 * lift) < 0.01
