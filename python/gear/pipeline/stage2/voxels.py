@@ -281,23 +281,25 @@ def target_pieces(
 
 
 def blob_hinges(
-    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, floor: float
+    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, floor: float,
+    shift: np.ndarray | None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Turns of the cells `src_mask` holding `points`, a piece that is neither a plane nor a
     rod (hypotheses.swept_hinges): about its own principal axes, the target's and those of the
     largest target pieces (at least `floor` voxels). A sweep over so many axes, angles
     and starts also fits part of a drawer or of a noise blob somewhere, so only turns that
     land nearly all of the piece (BLOB_LANDED of its cells on target matter) and its centres
-    closer than the best slide does (by BLOB_MARGIN in VoxelSplit.surface_fit) are kept: two
-    touching parts, one blob, are left to the slide and the split by motion."""
+    closer than the best slide `shift` does (by BLOB_MARGIN in VoxelSplit.surface_fit) are
+    kept: two touching parts, one blob, are left to the slide and the split by motion."""
     planes = _target_planes(split, floor)
     axes = [*fit_plane(points).axes, *fit_plane(split.target_tree.data).axes,
             *(a for p in planes for a in p.axes)]
-    return _swept_turns(split, src_mask, points, planes, axes, SWEEP_STEP_DEG)
+    return _swept_turns(split, src_mask, points, planes, axes, SWEEP_STEP_DEG, shift)
 
 
 def in_plane_turns(
-    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, floor: float
+    split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, floor: float,
+    shift: np.ndarray | None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Turns of the flat piece `src_mask` (holding `points`) about its own normal onto the
     target pieces parallel to it, kept as in blob_hinges: a blade of scissors, a swivelling
@@ -314,7 +316,7 @@ def in_plane_turns(
               if p.is_flat and abs(float(p.normal @ normal)) > IN_PLANE_COS]
     if not planes:
         return []
-    return _swept_turns(split, src_mask, points, planes, [normal], IN_PLANE_STEP_DEG)
+    return _swept_turns(split, src_mask, points, planes, [normal], IN_PLANE_STEP_DEG, shift)
 
 
 def _target_planes(split: VoxelSplit, floor: float) -> list[Plane]:
@@ -326,17 +328,17 @@ def _target_planes(split: VoxelSplit, floor: float) -> list[Plane]:
 
 def _swept_turns(
     split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, planes: list[Plane],
-    axes: list[np.ndarray], step_deg: float,
+    axes: list[np.ndarray], step_deg: float, shift: np.ndarray | None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The swept turns (hypotheses.swept_hinges, every `step_deg` about each of `axes`) of the
     cells `src_mask` holding `points` that land BLOB_LANDED of its cells and fit its centres
-    closer than the best slide by BLOB_MARGIN. Each starts with the centroid on the target
-    `planes`' centroids, and points a quarter of their two largest extents away: the target's
-    piece is often a different part of the blob than the canonical one, so centroids mislead."""
+    closer than the best slide `shift` (None: there is none) by BLOB_MARGIN. Each starts with
+    the centroid on the target `planes`' centroids, and points a quarter of their two largest
+    extents away: the target's piece is often a different part of the blob than the canonical
+    one, so centroids mislead."""
     starts = [p.centroid + f * e * a for p in planes
               for e, a in zip(p.extents[:2], p.axes[:2], strict=True) for f in (-0.25, 0.25)]
     starts += [p.centroid for p in planes]
-    shift = split.best_slide(src_mask)
     slide_fit = 0.0 if shift is None else split.surface_fit(points, np.eye(3), shift)
     cells = np.argwhere(src_mask)
     return [(r, t) for r, t in swept_hinges(points, axes, starts, split.target_tree,
@@ -369,6 +371,8 @@ def init_motion(
     """
     src_cells = np.argwhere(src_mask)
     canon_plane = fit_plane(points)
+    # The best slide, once: the swept turns must beat it, and it is a candidate itself.
+    shift = split.best_slide(src_mask)
     candidates: list[Hypothesis] = []
     fold_offsets = split.grid.voxel_size * np.arange(-2.0, 2.5, 0.5)
     floor = max(MIN_PART_VOXELS, 0.2 * (of_size or len(src_cells)))
@@ -390,10 +394,10 @@ def init_motion(
                     hyp.fold = folded
                     candidates.append(hyp)
         if canon_plane.is_flat and sweep:
-            turns = in_plane_turns(split, src_mask, points, floor)
+            turns = in_plane_turns(split, src_mask, points, floor, shift)
             candidates += [split.score(src_cells, "hinge", r, t) for r, t in turns]
     elif sweep:
-        blobs = blob_hinges(split, src_mask, points, floor)
+        blobs = blob_hinges(split, src_mask, points, floor, shift)
         candidates += [split.score(src_cells, "hinge", r, t) for r, t in blobs]
     hinges = [h for h in candidates if h.trusted]
     candidates = []
@@ -417,7 +421,6 @@ def init_motion(
         candidates.append(best_of[order[0]][1])
         if len(order) > 1:
             spare_hinge = best_of[order[1]][1]
-    shift = split.best_slide(src_mask)
     if shift is not None:
         candidates.append(split.score(src_cells, "slide", np.eye(3), shift))
     trusted = [h for h in candidates if h.trusted]
