@@ -18,6 +18,7 @@ from typing import Any
 
 SCHEDULES = ("em", "joint", "em-refine")
 PROFILES = ("quick", "fast", "full")
+ANCHORS = ("frozen", "images")
 
 
 @dataclass
@@ -63,7 +64,11 @@ class TrainConfig:
     lambda_sam: float = 0.1
     lambda_knn: float = 0.1
     lambda_opacity: float = 0.1  # opacity binarisation BCE
-    lambda_anchor: float = 1.0  # canonical anchor vs the frozen stage-1 model
+    lambda_anchor: float = 1.0  # canonical anchor (see `anchor`)
+    # what stage 3 holds the undeformed canonical model to: "frozen" = the stage-1 canonical
+    # model rendered from the target cameras; "images" = the canonical state's own training
+    # images (docs/training.md, "The canonical anchor")
+    anchor: str = "frozen"
     static_class_weight: float = 1.2
 
     # --- A.2: part-aware refinements ---
@@ -163,7 +168,7 @@ RANGES: dict[str, tuple[float, float | None, bool]] = {
                                    "lr_opacity", "lr_colors", "lr_logits", "lr_sh",
                                    "lr_motion_rot", "lr_motion_trans")},
 }
-CHOICES = {"schedule": SCHEDULES, "profile": PROFILES}
+CHOICES = {"schedule": SCHEDULES, "profile": PROFILES, "anchor": ANCHORS}
 
 
 def _kind(value: Any) -> str:

@@ -16,7 +16,7 @@ from gear.losses import (
     region_pseudo_labels,
     sam_ce_loss,
 )
-from gear.pipeline.common import check_finite, image_terms, means_lr
+from gear.pipeline.common import TrainView, check_finite, image_terms, means_lr
 from gear.pipeline.stage3.shared import RefineState
 from gear.splats import render
 from gear.splats.sh import SH_PARAM
@@ -42,13 +42,7 @@ def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
                  depth=view.depth is not None)
     terms = image_terms(out, view, bg, c)
 
-    anchor = render(g, view.camera, bg, features=rgb, depth=True)
-    frozen_rgb, frozen_alpha, frozen_depth = state.anchor(index, view)
-    anchor_target = frozen_rgb + (1 - frozen_alpha)[..., None] * bg
-    terms["anchor"] = c.lambda_anchor * (
-        photometric(anchor.features, anchor_target, c.lambda_dssim)
-        + c.lambda_depth * depth_log_l1(anchor.depth, frozen_depth)
-    )
+    terms["anchor"] = c.lambda_anchor * anchor_term(state, index, view, bg, rgb)
     terms["opacity"] = c.lambda_opacity * opacity_binarisation(g["opacity"])
     terms.update(segmentation_terms(state, logits))
     check_finite(terms, state.name, it)
@@ -61,6 +55,23 @@ def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
     if phase == "J":
         state.motion_optimizer.step()
     return {k: v.item() for k, v in terms.items()}
+
+
+def anchor_term(state: RefineState, index: int, view: TrainView, bg: torch.Tensor,
+                rgb: torch.Tensor | None) -> torch.Tensor:
+    """What holds the undeformed canonical model: the frozen stage-1 model seen from the
+    target camera `view`, or (anchor = "images") a canonical-state training image, so that the
+    canonical geometry answers to both states' images rather than to stage 1's reading of one."""
+    c, g = state.config, state.gaussians
+    if c.anchor == "images":
+        own = state.pick(state.canonical_views)
+        out = render(g, own.camera, bg, features=rgb, depth=own.depth is not None)
+        return sum(image_terms(out, own, bg, c).values())
+    out = render(g, view.camera, bg, features=rgb, depth=True)
+    frozen_rgb, frozen_alpha, frozen_depth = state.anchor(index, view)
+    target = frozen_rgb + (1 - frozen_alpha)[..., None] * bg
+    return (photometric(out.features, target, c.lambda_dssim)
+            + c.lambda_depth * depth_log_l1(out.depth, frozen_depth))
 
 
 def segmentation_terms(state: RefineState, logits: torch.Tensor) -> dict:
