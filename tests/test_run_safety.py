@@ -314,6 +314,18 @@ def test_parts_without_gaussians_are_dropped_and_the_rest_renumbered():
     assert same[0] is kept and same[2] == []
 
 
+def test_a_model_whose_every_movable_part_emptied_keeps_its_static_part():
+    g = Gaussians(dict(means=torch.zeros(3, 3), quats=torch.tensor([[1.0, 0, 0, 0]] * 3),
+                       log_scales=torch.zeros(3, 3), opacity=torch.zeros(3),
+                       colors=torch.zeros(3, 3),
+                       logits=torch.tensor([[5.0, 0.0, 0.0]] * 3)))  # all static
+    kept, smaller, dropped = drop_empty_parts(g, PartMotion(3))
+    assert dropped == [1, 2]
+    assert kept.num_parts == 1 and smaller.num_parts == 1
+    assert kept.part_ids().tolist() == [0, 0, 0]
+    assert smaller.qr.shape[0] == 0 and smaller.qd.shape[0] == 0  # no movable part left
+
+
 def test_more_parts_than_the_data_has_exports_no_empty_links(scene, tmp_path):
     result = train(scene, tmp_path / "out", make_config("quick", {**CONFIG, "num_parts": 8}),
                    quiet=True)

@@ -65,10 +65,10 @@ class TrainConfig:
     lambda_knn: float = 0.1
     lambda_opacity: float = 0.1  # opacity binarisation BCE
     lambda_anchor: float = 1.0  # canonical anchor (see `anchor`)
-    # what stage 3 holds the undeformed canonical model to: "frozen" = the stage-1 canonical
-    # model rendered from the target cameras; "images" = the canonical state's own training
-    # images (docs/training.md, "The canonical anchor")
-    anchor: str = "frozen"
+    # [beyond] what stage 3 holds the undeformed canonical model to: "images" = the canonical
+    # state's own training images; "frozen" (the paper) = the stage-1 canonical model rendered
+    # from the target cameras, stage 1's errors included (docs/training.md, "The canonical anchor")
+    anchor: str = "images"
     static_class_weight: float = 1.2
 
     # --- A.2: part-aware refinements ---

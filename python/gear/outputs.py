@@ -155,7 +155,7 @@ def drop_empty_parts(g: Gaussians, motion: PartMotion) -> tuple[Gaussians, PartM
     kept = Gaussians({name: (t.detach()[:, keep] if name == "logits" else t.detach())
                       for name, t in g.params.items()})
     smaller = PartMotion(len(keep), dtype=motion.qr.dtype)
-    movable = torch.tensor(keep[1:]) - 1
+    movable = torch.tensor(keep[1:], dtype=torch.long) - 1  # long even when none is left
     with torch.no_grad():
         smaller.qr.copy_(motion.qr[movable])
         smaller.qd.copy_(motion.qd[movable])

@@ -1,7 +1,7 @@
 """Stage 3's E-step (and the joint-optimisation step): the motion held (or, in 'J', trained
-too), the Gaussians and their part logits learn under soft assignment, anchored to the frozen
-stage-1 model and supervised by region pseudo-labels and KNN smoothness (docs/method.md,
-"Stage 3: E-step")."""
+too), the Gaussians and their part logits learn under soft assignment, anchored to the
+canonical images (or the frozen stage-1 model) and supervised by region pseudo-labels and KNN
+smoothness (docs/method.md, "Stage 3: E-step")."""
 
 from __future__ import annotations
 
