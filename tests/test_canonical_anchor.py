@@ -9,8 +9,10 @@ import torch
 
 from gear.articulation import PartMotion
 from gear.config import make_config
+from gear.pipeline.stage2 import Stage2Result
 from gear.pipeline.stage3 import Refine
 from gear.pipeline.stage3.estep import anchor_term
+from gear.pipeline.stage3.refine import refine_state, resumed_refine_state
 from gear.splat_reference import rasterize_dense
 from gear.splats import rendering
 from stage3_scenes import grid_gaussians, views_of
@@ -60,6 +62,27 @@ def test_the_canonical_images_pull_a_stage1_error_back():
         # a gradient step moves the plank against its error
         pulls.append(float(grad @ STAGE1_ERROR) / float(np.linalg.norm(STAGE1_ERROR)))
     assert min(pulls) > 0, pulls
+
+
+@pytest.mark.parametrize("anchor", ["frozen", "images"])
+def test_only_the_frozen_anchor_keeps_and_checkpoints_a_copy_of_stage_1(anchor):
+    """The default anchor costs no copy of the stage-1 model, in memory or in checkpoints."""
+    truth = grid_gaussians([(wall(), 0), (plank(-0.3, 0.0), 1)])
+    views = views_of(truth, PartMotion(truth.num_parts))
+    coarse = Stage2Result("start", 2, truth["logits"], [[(np.eye(3), np.zeros(3))]], 0.05)
+    cfg = make_config("quick", dict(anchor=anchor))
+    g = truth.clone()
+    stage = refine_state(g, truth, coarse, {"start": views, "end": views}, cfg)
+    saved = stage.checkpoint()
+    if anchor == "frozen":
+        assert stage.frozen is not None and stage.frozen is not truth
+        assert saved["frozen"] is not None
+    else:
+        assert stage.frozen is None and saved["frozen"] is None
+    resumed = resumed_refine_state(saved, coarse, {"start": views, "end": views}, cfg)
+    assert (resumed.frozen is None) == (anchor == "images")
+    index, view, bg = resumed.target_view()
+    assert torch.isfinite(anchor_term(resumed, index, view, bg, resumed.gaussians.rgb()))
 
 
 def test_an_unknown_anchor_is_refused_by_name():

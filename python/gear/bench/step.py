@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
 
 def phases(run_dir: Path, scene_dir: Path) -> Iterator[tuple[str, Stage, int]]:
     """(name, stage state, iteration) of stage 1 and of stage 3's E- and M-steps, late in
-    their schedules (past densification, with the anchor renders cached)."""
+    their schedules (past densification, with a frozen anchor's renders cached)."""
     saved = checkpoint.load(run_dir / "checkpoints") if (run_dir / "checkpoints").is_dir() else None
     if saved is None or not saved.get("models") or saved.get("coarse") is None:
         raise RunFolderError(f"{run_dir}: needs a run of `gear train` past stage 2 "
@@ -99,8 +99,9 @@ def phases(run_dir: Path, scene_dir: Path) -> Iterator[tuple[str, Stage, int]]:
     yield "stage 1", stage1, config.stage1_iterations - 1
 
     refine = stage3_state(saved, models, coarse, views, config)
-    for index, view in enumerate(refine.target_views):  # as late in a run: all cached
-        refine.anchor(index, view)
+    if refine.frozen is not None:  # as late in a run: every frozen-anchor render cached
+        for index, view in enumerate(refine.target_views):
+            refine.anchor(index, view)
     for phase in ("E", "M"):
         it = next(i for i in range(config.stage3_iterations - 1, -1, -1)
                   if refine.phase(i) == phase and i != config.joint_classify_iteration)
@@ -116,7 +117,7 @@ def stage3_state(saved: dict, models: dict, coarse: Stage2Result,
     if refined is None:
         raise RunFolderError("the run has not reached stage 3 yet: time it once stage 3 runs")
     state = refine_state(checkpoint.gaussians_from_state(refined["gaussians"]),
-                         models[coarse.canonical].clone(), coarse, views, config)
+                         models[coarse.canonical], coarse, views, config)
     state.motion.load_state_dict(refined["motion"])
     return state
 

@@ -105,14 +105,16 @@ class Refine(RefineState):
 
     def checkpoint(self) -> dict:
         return {"current": checkpoint.gaussians_state(self.gaussians),
-                "frozen": checkpoint.gaussians_state(self.frozen),
+                "frozen": None if self.frozen is None else checkpoint.gaussians_state(self.frozen),
                 "stage_state": self.state_dict()}
 
 
-def refine_state(g: Gaussians, frozen: Gaussians, coarse: Stage2Result,
+def refine_state(g: Gaussians, stage1: Gaussians | None, coarse: Stage2Result,
                  views: dict[str, Sequence[TrainView]], config: TrainConfig) -> Refine:
-    """Stage 3's state on the canonical Gaussians `g` (with part logits) and the frozen stage-1
-    model, the motions starting from stage 2's."""
+    """Stage 3's state on the canonical Gaussians `g` (with part logits), the motions starting
+    from stage 2's. A frozen copy of the canonical stage-1 model `stage1` is kept only for
+    anchor = "frozen": the default anchor (the canonical images) never renders it."""
+    frozen = stage1.clone() if config.anchor == "frozen" and stage1 is not None else None
     return Refine(g, PartMotion.from_rt(coarse.motions), frozen, views[coarse.canonical],
                   views[coarse.target], config, config.seed * 1000 + 7,
                   init_motions=coarse.candidates, canonical=coarse.canonical)
@@ -121,8 +123,10 @@ def refine_state(g: Gaussians, frozen: Gaussians, coarse: Stage2Result,
 def resumed_refine_state(saved: dict, coarse: Stage2Result,
                          views: dict[str, Sequence[TrainView]], config: TrainConfig) -> Refine:
     """Stage 3's state as a checkpoint taken during stage 3 (`saved`) left it."""
+    frozen = saved.get("frozen")
     stage = refine_state(checkpoint.gaussians_from_state(saved["current"]),
-                         checkpoint.gaussians_from_state(saved["frozen"]), coarse, views, config)
+                         None if frozen is None else checkpoint.gaussians_from_state(frozen),
+                         coarse, views, config)
     stage.load_state_dict(saved["stage_state"])
     return stage
 
@@ -144,7 +148,7 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
         base = models[coarse.canonical]
         g = base.clone()
         g.add_param("logits", coarse.logits, c.lr_logits)
-        stage, start = refine_state(g, base.clone(), coarse, views, c), 0
+        stage, start = refine_state(g, base, coarse, views, c), 0
     runner.run(stage, start, c.stage3_iterations)
     # Again at the end: a fragment's motion may reach its part's only after the merge at the
     # joint-type decision (a scissors blade's tip, given a turn of 8 degrees by an older

@@ -86,7 +86,8 @@ def held_key(g: Gaussians) -> tuple:
 
 class RefineState(Stage):
     """Stage 3's state: canonical Gaussians + part logits + per-part motion, the frozen
-    stage-1 model of the canonical state, and the views of both states."""
+    stage-1 model of the canonical state (None unless the anchor is "frozen"), and the views
+    of both states."""
 
     name = "stage3"
 
@@ -94,7 +95,7 @@ class RefineState(Stage):
         self,
         gaussians: Gaussians,
         motion: PartMotion,
-        frozen: Gaussians,
+        frozen: Gaussians | None,
         canonical_views: Sequence[TrainView],
         target_views: Sequence[TrainView],
         config: TrainConfig,
@@ -139,6 +140,8 @@ class RefineState(Stage):
     def anchor(self, view_index: int, view: TrainView) -> tuple[torch.Tensor, ...]:
         """The frozen stage-1 canonical model seen from a target camera (zero background):
         (features, alpha, depth where solid), rendered once per view."""
+        if self.frozen is None:
+            raise ValueError('anchor = "frozen" needs the frozen stage-1 model; none was kept')
         if view_index not in self._anchor_cache:
             with torch.no_grad():
                 out = render(self.frozen, view.camera, torch.zeros(3), depth=True)
