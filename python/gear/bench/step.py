@@ -99,9 +99,7 @@ def phases(run_dir: Path, scene_dir: Path) -> Iterator[tuple[str, Stage, int]]:
     yield "stage 1", stage1, config.stage1_iterations - 1
 
     refine = stage3_state(saved, models, coarse, views, config)
-    if refine.frozen is not None:  # as late in a run: every frozen-anchor render cached
-        for index, view in enumerate(refine.target_views):
-            refine.anchor(index, view)
+    refine.cache_anchor_renders()
     for phase in ("E", "M"):
         it = next(i for i in range(config.stage3_iterations - 1, -1, -1)
                   if refine.phase(i) == phase and i != config.joint_classify_iteration)

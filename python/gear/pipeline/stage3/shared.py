@@ -137,6 +137,13 @@ class RefineState(Stage):
             self._neighbours_generation = g.generation
         return self._neighbours
 
+    def cache_anchor_renders(self) -> None:
+        """Every target view's frozen-anchor render, as late in a run (none without a frozen
+        model: the images anchor renders nothing ahead)."""
+        if self.frozen is not None:
+            for index, view in enumerate(self.target_views):
+                self.anchor(index, view)
+
     def anchor(self, view_index: int, view: TrainView) -> tuple[torch.Tensor, ...]:
         """The frozen stage-1 canonical model seen from a target camera (zero background):
         (features, alpha, depth where solid), rendered once per view."""
