@@ -43,7 +43,7 @@ def stage_with_a_stage1_error(anchor: str) -> tuple[Refine, torch.Tensor]:
 def test_a_stage1_error_costs_nothing_against_the_frozen_model(view_index):
     state, _ = stage_with_a_stage1_error("frozen")
     view = state.target_views[view_index]
-    term = anchor_term(state, view_index, view, torch.zeros(3), state.gaussians.rgb())
+    term, _ = anchor_term(state, view_index, view, torch.zeros(3), state.gaussians.rgb())
     assert term.item() < 1e-5
 
 
@@ -54,7 +54,7 @@ def test_the_canonical_images_pull_a_stage1_error_back():
     for _ in range(3):  # each call draws one canonical image
         g.optimizer.zero_grad(set_to_none=True)
         view = state.target_views[0]
-        term = anchor_term(state, 0, view, torch.zeros(3), g.rgb())
+        term, _ = anchor_term(state, 0, view, torch.zeros(3), g.rgb())
         assert term.item() > 1e-3  # the images see the plank elsewhere
         term.backward()
         grad = g["means"].grad[plank_ids].sum(0)
@@ -82,7 +82,7 @@ def test_only_the_frozen_anchor_keeps_and_checkpoints_a_copy_of_stage_1(anchor):
     resumed = resumed_refine_state(saved, coarse, {"start": views, "end": views}, cfg)
     assert (resumed.frozen is None) == (anchor == "images")
     index, view, bg = resumed.target_view()
-    assert torch.isfinite(anchor_term(resumed, index, view, bg, resumed.gaussians.rgb()))
+    assert torch.isfinite(anchor_term(resumed, index, view, bg, resumed.gaussians.rgb())[0])
 
 
 def test_an_unknown_anchor_is_refused_by_name():

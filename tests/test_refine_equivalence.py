@@ -1,16 +1,19 @@
 """Stage 3's cost-saving formulation optimises exactly what the straightforward one does.
 
-The reference below is the plain reading of the part supervision (docs/method.md): render the
-canonical Gaussians with their colours and the K part logits as extra channels, and take the
-logit channels of that image. Refine renders the logit channels alone (blending is per
-channel, so the colours only cost time). Both run the same seeded E- and M-steps with the
-deterministic torch renderer; losses and every trained tensor must agree to float rounding.
+The reference below is the plain reading of the E-step's canonical terms (docs/method.md):
+the anchor renders a canonical image's colours; the part supervision renders the same view's
+colours with the K part logits as extra channels and takes the logit channels. Refine blends
+the colours and the logits in the anchor's one render (blending is per channel, so each
+channel's gradient is what its own render gives), or the logit channels alone when no anchor
+render has them. Both run the same seeded E- and M-steps with the deterministic torch
+renderer; losses and every trained tensor must agree to float rounding.
 """
 
 import pytest
 import torch
 
 from gear.losses import region_pseudo_labels, sam_ce_loss
+from gear.pipeline.common import TrainView, image_terms
 from gear.pipeline.stage3 import Refine, estep
 from gear.pipeline.stage3.shared import RefineState
 from gear.splat_reference import rasterize_dense
@@ -23,19 +26,31 @@ ATOL = 1e-6
 RTOL = 1e-5
 
 
-def reference_segmentation_terms(state: RefineState, logits: torch.Tensor) -> dict:
-    """estep.segmentation_terms with the part supervision rendered the straightforward way
-    (colour + logits)."""
+def reference_anchor_term(state: RefineState, index: int, view: TrainView, bg: torch.Tensor,
+                           rgb: torch.Tensor | None, logits: torch.Tensor | None = None):
+    """estep.anchor_term (images) with its colours and the part logits in renders of their
+    own: the colours over the background, the colours (no gradient) + logits over black."""
     c, g = state.config, state.gaussians
+    own = state.pick(state.canonical_views)
+    out = rendering.render(g, own.camera, bg, features=rgb, depth=own.depth is not None)
+    term = sum(image_terms(out, own, bg, c).values())
+    if logits is None or own.regions is None:
+        return term, None
+    features = torch.cat([g.rgb().detach(), logits], dim=1)
+    both = rendering.render(g, own.camera, torch.zeros(3 + g.num_parts), features=features)
+    return term, (own, both.features[..., 3:])
+
+
+def reference_segmentation_terms(state: RefineState, logits: torch.Tensor,
+                                 part_image: estep.PartImage | None = None) -> dict:
+    """estep.segmentation_terms with the consistency term as written."""
+    c = state.config
     neighbours = state.neighbours()
     # The consistency term as written: mean over every (Gaussian, neighbour) pair.
     diffs = [(logits - logits[nb]).norm(dim=1) for nb in neighbours.unbind(1)]
     terms = {"knn": c.lambda_knn * torch.stack(diffs, dim=1).mean()}
-    view = state.pick(state.region_views)
-    k = g.num_parts
-    features = torch.cat([g.rgb().detach(), logits], dim=1)
-    out = rendering.render(g, view.camera, torch.zeros(3 + k), features=features)
-    logit_image = out.features[..., 3:]
+    assert part_image is not None  # every canonical view of the stage has regions
+    view, logit_image = part_image
     labels = region_pseudo_labels(
         torch.softmax(logit_image.detach(), dim=-1), view.regions,
         state.motion.prismatic, gamma=c.gamma_prism, min_conf=c.pseudo_min_conf,
@@ -47,8 +62,9 @@ def reference_segmentation_terms(state: RefineState, logits: torch.Tensor) -> di
 
 
 def reference_step(stage: Refine, it: int, monkeypatch: pytest.MonkeyPatch) -> dict:
-    """One step of `stage` with the reference part supervision in place of the fast one."""
+    """One step of `stage` with the reference canonical terms in place of the fast ones."""
     with monkeypatch.context() as patched:
+        patched.setattr(estep, "anchor_term", reference_anchor_term)
         patched.setattr(estep, "segmentation_terms", reference_segmentation_terms)
         return stage.step(it)
 

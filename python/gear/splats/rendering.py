@@ -43,6 +43,7 @@ def render(
     *,
     pose: tuple[torch.Tensor, torch.Tensor] | None = None,
     features: torch.Tensor | None = None,
+    extra: torch.Tensor | None = None,
     depth: bool = False,
     detach: bool = False,
     held: int = 0,
@@ -52,6 +53,8 @@ def render(
     pose: (means, quats) to draw instead of the stored ones (a posed or deformed model, see
     gear.kinematics.pose_parts). features: [N,C] to blend instead of the RGB colours (those
     are view-dependent when the splats carry spherical harmonics, see gear.splats.sh).
+    extra: [N,E] more channels (e.g. part logits) blended after those over a black background,
+    in the same pass: one projection and sort serve both (blending is per channel).
     detach: no gradient reaches the stored parameters (a given pose or features keep their
     own graph). held: the first `held` Gaussians pass no gradient at all (constants of the
     caller, e.g. a static part; their backward work is skipped)."""
@@ -66,5 +69,8 @@ def render(
     if feats is None:  # the colours, view-dependent when the splats carry SH coefficients
         feats = view_rgb(splats, rgb, camera, means, quats, canonical_quats, detach)
     bg = torch.zeros(feats.shape[1]) if background is None else background
+    if extra is not None:
+        feats = torch.cat([feats, extra], dim=1)
+        bg = torch.cat([bg, torch.zeros(extra.shape[1], dtype=bg.dtype)])
     return rasterizer()(means, quats, log_scales, opacity, feats, camera, background=bg,
                         depth=depth, held=held)

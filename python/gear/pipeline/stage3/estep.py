@@ -21,6 +21,9 @@ from gear.pipeline.stage3.shared import RefineState
 from gear.splats import render
 from gear.splats.sh import SH_PARAM
 
+# A region view and the part logits rendered from it [H,W,K].
+PartImage = tuple[TrainView, torch.Tensor]
+
 
 def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
     """E-step (motion frozen, soft assignment, part supervision) or a joint-optimisation step
@@ -42,9 +45,10 @@ def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
                  depth=view.depth is not None)
     terms = image_terms(out, view, bg, c)
 
-    terms["anchor"] = c.lambda_anchor * anchor_term(state, index, view, bg, rgb)
+    anchor, part_image = anchor_term(state, index, view, bg, rgb, logits)
+    terms["anchor"] = c.lambda_anchor * anchor
     terms["opacity"] = c.lambda_opacity * opacity_binarisation(g["opacity"])
-    terms.update(segmentation_terms(state, logits))
+    terms.update(segmentation_terms(state, logits, part_image))
     check_finite(terms, state.name, it)
     loss = sum(terms.values())
     g.optimizer.zero_grad(set_to_none=True)
@@ -58,15 +62,31 @@ def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
 
 
 def anchor_term(state: RefineState, index: int, view: TrainView, bg: torch.Tensor,
-                rgb: torch.Tensor | None) -> torch.Tensor:
+                rgb: torch.Tensor | None, logits: torch.Tensor | None = None,
+                ) -> tuple[torch.Tensor, PartImage | None]:
     """What holds the undeformed canonical model: the frozen stage-1 model seen from the
     target camera `view`, or (anchor = "images") a canonical-state training image, so that the
-    canonical geometry answers to both states' images rather than to stage 1's reading of one."""
+    canonical geometry answers to both states' images rather than to stage 1's reading of one.
+
+    With the images, when that image has regions and `logits` are given, the same render
+    blends the logits too and returns them as the part supervision's image: one projection
+    and sort serve both terms (blending is per channel, so each channel's gradient is what a
+    render of its own would give)."""
     c, g = state.config, state.gaussians
-    if c.anchor == "images":
-        own = state.pick(state.canonical_views)
-        out = render(g, own.camera, bg, features=rgb, depth=own.depth is not None)
-        return sum(image_terms(out, own, bg, c).values())
+    if c.anchor == "frozen":
+        return frozen_anchor_term(state, index, view, bg, rgb), None
+    own = state.pick(state.canonical_views)
+    with_logits = logits is not None and own.regions is not None
+    out = render(g, own.camera, bg, features=rgb, extra=logits if with_logits else None,
+                 depth=own.depth is not None)
+    term = sum(image_terms(out, own, bg, c).values())
+    return term, (own, out.features[..., 3:]) if with_logits else None
+
+
+def frozen_anchor_term(state: RefineState, index: int, view: TrainView, bg: torch.Tensor,
+                       rgb: torch.Tensor | None) -> torch.Tensor:
+    """The paper's anchor: the frozen stage-1 model's render from the target camera."""
+    c, g = state.config, state.gaussians
     out = render(g, view.camera, bg, features=rgb, depth=True)
     frozen_rgb, frozen_alpha, frozen_depth = state.anchor(index, view)
     target = frozen_rgb + (1 - frozen_alpha)[..., None] * bg
@@ -74,16 +94,21 @@ def anchor_term(state: RefineState, index: int, view: TrainView, bg: torch.Tenso
             + c.lambda_depth * depth_log_l1(out.depth, frozen_depth))
 
 
-def segmentation_terms(state: RefineState, logits: torch.Tensor) -> dict:
-    """Region-voted pseudo-labels on a rendered logit image (CE) + KNN smoothness."""
+def segmentation_terms(state: RefineState, logits: torch.Tensor,
+                       part_image: PartImage | None = None) -> dict:
+    """Region-voted pseudo-labels on a rendered logit image (CE) + KNN smoothness.
+    `part_image`: a region view and its logit image rendered already (by the anchor), else
+    a region view is drawn and its logits rendered here."""
     c, g = state.config, state.gaussians
     terms = {"knn": c.lambda_knn * fused_knn_consistency(logits, state.neighbours())}
-    if not state.region_views:
-        return terms
-    view = state.pick(state.region_views)
-    # Only the K logit channels: blending is per channel, so colour channels carried
-    # along would change nothing but the cost of the render.
-    logit_image = render(g, view.camera, features=logits).features
+    if part_image is None:
+        if not state.region_views:
+            return terms
+        view = state.pick(state.region_views)
+        # Only the K logit channels: blending is per channel, so colour channels carried
+        # along would change nothing but the cost of the render.
+        part_image = view, render(g, view.camera, features=logits).features
+    view, logit_image = part_image
     prob = torch.softmax(logit_image.detach(), dim=-1).numpy()
     labels = region_pseudo_labels(
         prob, view.regions, state.motion.prismatic.numpy(), gamma=c.gamma_prism,
