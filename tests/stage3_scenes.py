@@ -24,6 +24,20 @@ RES = 16
 OFFSET = np.array([0.6, 0.0, 0.0])
 
 
+def wall() -> torch.Tensor:
+    """A static wall of 12 centres in the plane y = 0.15."""
+    wx, wz = torch.meshgrid(torch.linspace(-0.4, 0.4, 4), torch.linspace(-0.3, 0.3, 3),
+                            indexing="ij")
+    return torch.stack([wx.flatten(), torch.full((12,), 0.15), wz.flatten()], 1)
+
+
+def plank(x0: float, x1: float, z: float = 0.0, columns: int = 3) -> torch.Tensor:
+    """A plank of 2 x `columns` centres from x0 to x1 at height z, in front of the wall."""
+    px, pz = torch.meshgrid(torch.linspace(x0, x1, columns), torch.tensor([z - 0.05, z + 0.05]),
+                            indexing="ij")
+    return torch.stack([px.flatten(), torch.full((2 * columns,), -0.1), pz.flatten()], 1)
+
+
 def rot_z(deg: float) -> np.ndarray:
     a = math.radians(deg)
     return np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])

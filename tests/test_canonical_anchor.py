@@ -15,8 +15,7 @@ from gear.pipeline.stage3.estep import anchor_term
 from gear.pipeline.stage3.refine import refine_state, resumed_refine_state
 from gear.splat_reference import rasterize_dense
 from gear.splats import rendering
-from stage3_scenes import grid_gaussians, views_of
-from test_part_merge import plank, wall
+from stage3_scenes import grid_gaussians, plank, views_of, wall
 
 STAGE1_ERROR = torch.tensor([0.06, 0.0, 0.0])  # how far stage 1 put the plank off
 

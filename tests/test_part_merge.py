@@ -20,7 +20,7 @@ from gear.pipeline.stage3.joint_types import image_loss
 from gear.pipeline.stage3.merge import FORGET_LOGIT, merge_parts, moved_like
 from gear.splat_reference import rasterize_dense
 from gear.splats import Gaussians, rendering
-from stage3_scenes import OFFSET, grid_gaussians, rot_z, views_of
+from stage3_scenes import OFFSET, grid_gaussians, plank, rot_z, views_of, wall
 
 PULL = np.array([0.0, -0.25, 0.0])
 HINGE = np.array([-0.3, -0.1, 0.0])  # the door's left edge (before OFFSET)
@@ -29,18 +29,6 @@ HINGE = np.array([-0.3, -0.1, 0.0])  # the door's left edge (before OFFSET)
 @pytest.fixture(autouse=True)
 def torch_renderer(monkeypatch):
     monkeypatch.setattr(rendering, "rasterizer", lambda: rasterize_dense)
-
-
-def wall() -> torch.Tensor:
-    wx, wz = torch.meshgrid(torch.linspace(-0.4, 0.4, 4), torch.linspace(-0.3, 0.3, 3),
-                            indexing="ij")
-    return torch.stack([wx.flatten(), torch.full((12,), 0.15), wz.flatten()], 1)
-
-
-def plank(x0: float, x1: float, z: float = 0.0, columns: int = 3) -> torch.Tensor:
-    px, pz = torch.meshgrid(torch.linspace(x0, x1, columns), torch.tensor([z - 0.05, z + 0.05]),
-                            indexing="ij")
-    return torch.stack([px.flatten(), torch.full((2 * columns,), -0.1), pz.flatten()], 1)
 
 
 def hinge(deg: float) -> tuple[np.ndarray, np.ndarray]:

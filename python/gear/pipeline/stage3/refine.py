@@ -115,20 +115,26 @@ def refine_state(g: Gaussians, stage1: Gaussians | None, coarse: Stage2Result,
     from stage 2's. A frozen copy of the canonical stage-1 model `stage1` is kept only for
     anchor = "frozen": the default anchor (the canonical images) never renders it."""
     frozen = stage1.clone() if config.anchor == "frozen" and stage1 is not None else None
-    return Refine(g, PartMotion.from_rt(coarse.motions), frozen, views[coarse.canonical],
-                  views[coarse.target], config, config.seed * 1000 + 7,
-                  init_motions=coarse.candidates, canonical=coarse.canonical)
+    return _refine(g, frozen, coarse, views, config)
 
 
 def resumed_refine_state(saved: dict, coarse: Stage2Result,
                          views: dict[str, Sequence[TrainView]], config: TrainConfig) -> Refine:
-    """Stage 3's state as a checkpoint taken during stage 3 (`saved`) left it."""
+    """Stage 3's state as a checkpoint taken during stage 3 (`saved`) left it (its frozen
+    model, when it kept one, is a fresh copy already)."""
     frozen = saved.get("frozen")
-    stage = refine_state(checkpoint.gaussians_from_state(saved["current"]),
-                         None if frozen is None else checkpoint.gaussians_from_state(frozen),
-                         coarse, views, config)
+    stage = _refine(checkpoint.gaussians_from_state(saved["current"]),
+                    None if frozen is None else checkpoint.gaussians_from_state(frozen),
+                    coarse, views, config)
     stage.load_state_dict(saved["stage_state"])
     return stage
+
+
+def _refine(g: Gaussians, frozen: Gaussians | None, coarse: Stage2Result,
+            views: dict[str, Sequence[TrainView]], config: TrainConfig) -> Refine:
+    return Refine(g, PartMotion.from_rt(coarse.motions), frozen, views[coarse.canonical],
+                  views[coarse.target], config, config.seed * 1000 + 7,
+                  init_motions=coarse.candidates, canonical=coarse.canonical)
 
 
 def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
