@@ -9,6 +9,8 @@ render has them. Both run the same seeded E- and M-steps with the deterministic 
 renderer; losses and every trained tensor must agree to float rounding.
 """
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -49,7 +51,12 @@ def reference_segmentation_terms(state: RefineState, logits: torch.Tensor,
     # The consistency term as written: mean over every (Gaussian, neighbour) pair.
     diffs = [(logits - logits[nb]).norm(dim=1) for nb in neighbours.unbind(1)]
     terms = {"knn": c.lambda_knn * torch.stack(diffs, dim=1).mean()}
-    assert part_image is not None  # every canonical view of the stage has regions
+    if part_image is None:  # the anchor's view has no regions: one that has them, rendered
+        view = state.pick(state.region_views)
+        features = torch.cat([state.gaussians.rgb().detach(), logits], dim=1)
+        out = rendering.render(state.gaussians, view.camera,
+                               torch.zeros(3 + state.gaussians.num_parts), features=features)
+        part_image = view, out.features[..., 3:]
     view, logit_image = part_image
     labels = region_pseudo_labels(
         torch.softmax(logit_image.detach(), dim=-1), view.regions,
@@ -69,16 +76,20 @@ def reference_step(stage: Refine, it: int, monkeypatch: pytest.MonkeyPatch) -> d
         return stage.step(it)
 
 
-def stage() -> Refine:
+def stage(regions_on: str = "every view") -> Refine:
     """test_train's tiny Refine with turned, anisotropic Gaussians: on its isotropic,
     unrotated ones the rotation gradient is exactly zero, and Adam would turn the rounding
-    noise left there into full learning-rate steps of either sign."""
+    noise left there into full learning-rate steps of either sign. `regions_on`: "every
+    view", or "the first view" (the other canonical views carry no region masks)."""
     out = refine_stage()
     gen = torch.Generator().manual_seed(11)
     with torch.no_grad():
         g = out.gaussians
         g["quats"].copy_(torch.nn.functional.normalize(torch.randn(len(g), 4, generator=gen)))
         g["log_scales"].add_(0.4 * torch.randn(len(g), 3, generator=gen))
+    if regions_on == "the first view":
+        out.canonical_views[1:] = [replace(v, regions=None) for v in out.canonical_views[1:]]
+        out.region_views = out.canonical_views[:1]
     return out
 
 
@@ -89,8 +100,18 @@ def torch_renderer(monkeypatch):
     monkeypatch.setattr(rendering, "rasterizer", lambda: rasterize_dense)
 
 
-def test_refine_steps_match_the_straightforward_formulation(torch_renderer, monkeypatch):
-    fast, reference = stage(), stage()
+@pytest.mark.parametrize("regions_on", ["every view", "the first view"])
+def test_refine_steps_match_the_straightforward_formulation(torch_renderer, monkeypatch,
+                                                            regions_on):
+    fast, reference = stage(regions_on), stage(regions_on)
+    shared = []  # per E-step of `fast`: did the anchor's render carry the part logits?
+    segmentation_terms = estep.segmentation_terms
+
+    def spy(state, logits, part_image=None):
+        shared.append(part_image is not None)
+        return segmentation_terms(state, logits, part_image)
+
+    monkeypatch.setattr(estep, "segmentation_terms", spy)
     assert {"sam", "knn", "anchor"} <= set(fast.step(0))  # an E-step with every term
     reference_step(reference, 0, monkeypatch)
     for it in range(1, 6):  # E, M, M, E, E (em_interval = 2)
@@ -102,6 +123,8 @@ def test_refine_steps_match_the_straightforward_formulation(torch_renderer, monk
         torch.testing.assert_close(fast.gaussians[name], want, atol=ATOL, rtol=RTOL, msg=name)
     torch.testing.assert_close(fast.motion.qr, reference.motion.qr, atol=ATOL, rtol=RTOL)
     torch.testing.assert_close(fast.motion.qd, reference.motion.qd, atol=ATOL, rtol=RTOL)
+    # Both ways of rendering the part logits were taken where the views allow them.
+    assert all(shared) if regions_on == "every view" else not all(shared), shared
     # The steps did train: a vacuous comparison of untouched tensors would also "agree".
     untouched = stage()
     assert not torch.equal(untouched.gaussians["logits"], fast.gaussians["logits"])
