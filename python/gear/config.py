@@ -57,6 +57,9 @@ class TrainConfig:
     # [beyond] at joint_classify_iteration, a part that another part's motion (or staying put)
     # explains about as well as its own joins that part (docs/method.md, "Parts read twice")
     merge_redundant_parts: bool = True
+    # [beyond] at the end of stage 3, a rod-like hinge (a lever) keeps only the swing of its
+    # length: its twist about that length is invisible in any image (docs/method.md, "Rods")
+    untwist_rods: bool = True
 
     # --- Table S1: loss weights ---
     lambda_dssim: float = 0.2

@@ -20,6 +20,7 @@ from gear.pipeline.stage3.joint_types import classify
 from gear.pipeline.stage3.joints import object_center, start_to_end_joints
 from gear.pipeline.stage3.merge import merge_parts
 from gear.pipeline.stage3.mstep import motion_step
+from gear.pipeline.stage3.rods import untwist_rods
 from gear.pipeline.stage3.shared import RefineState
 from gear.splats import Gaussians
 
@@ -69,6 +70,11 @@ class Refine(RefineState):
         if self.config.merge_redundant_parts:
             merged = merge_parts(self)
             self.events.append({"event": "part_merge", "merges": [m.record() for m in merged]})
+
+    def untwist_rods(self) -> None:
+        """rods.untwist_rods, when the config asks for it, recorded as an event."""
+        if self.config.untwist_rods:
+            self.events.append({"event": "rod_untwist", "parts": untwist_rods(self)})
 
     def result(self) -> Stage3Result:
         return Stage3Result(self.gaussians, self.motion, self.canonical)
@@ -161,6 +167,7 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
     # stage 2, ended within 1 degree of the blade's 34 and stayed a part).
     started = time.perf_counter()
     stage.merge_parts_read_twice()
+    stage.untwist_rods()
     runner.write_events(stage, when="end")
     runner.timed(stage.name, time.perf_counter() - started)
     result = stage.result()
