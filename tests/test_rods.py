@@ -83,6 +83,11 @@ def test_a_flat_bar_shows_its_twist_and_keeps_its_motion():
     assert rod_swing(lever(), *with_twist(47.0, 9.0)) is not None  # the same bar, round
 
 
+def test_centres_at_one_point_are_no_rod():
+    point = PIVOT.repeat(20, 1)
+    assert rod_swing(point, *with_twist(47.0, 9.0)) is None
+
+
 def test_a_knob_spinning_about_its_length_keeps_its_motion():
     quat, trans = turn(torch.tensor([0.05, 0.0, 1.0], dtype=DTYPE), 60.0)
     assert rod_swing(lever(), quat, trans) is None

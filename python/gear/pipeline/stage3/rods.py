@@ -39,7 +39,8 @@ MIN_CENTRES = 10
 
 def untwist_rods(state: RefineState) -> list[dict]:
     """Replaces each rod-like hinge's motion in `state.motion` by its swing; returns a record
-    per part changed (its twist and how far its axis moved, in degrees)."""
+    per part changed: its twist and how far its axis moved (degrees), the largest shift of its
+    centres and the spreads of its shape."""
     g, motion = state.gaussians, state.motion
     ids = g.part_ids()
     opaque = torch.sigmoid(g["opacity"].detach()) > MIN_OPACITY
@@ -68,7 +69,10 @@ def rod_swing(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor,
     centre = points.mean(0)
     spread, directions = torch.linalg.eigh(torch.cov((points - centre).T))
     spread = spread.clamp(min=0).sqrt()  # ascending
-    if spread[2] < ROD_ASPECT * spread[1] or spread[1] > MAX_CROSS_SECTION_ASPECT * spread[0]:
+    # Written so that a degenerate cluster (every spread 0) is no rod.
+    thin = spread[2] > ROD_ASPECT * spread[1]
+    round_ = spread[1] <= MAX_CROSS_SECTION_ASPECT * spread[0]
+    if not (thin and round_):
         return None
     length = directions[:, 2]
     rot = quat_to_matrix(quat)
