@@ -80,7 +80,9 @@ def anchor_term(state: RefineState, index: int, view: TrainView, bg: torch.Tenso
     out = render(g, own.camera, bg, features=rgb, extra=logits if with_logits else None,
                  depth=own.depth is not None)
     term = sum(image_terms(out, own, bg, c).values())
-    return term, (own, out.features[..., 3:]) if with_logits else None
+    if not with_logits:
+        return term, None
+    return term, (own, out.features[..., -logits.shape[1]:])  # the extra channels come last
 
 
 def frozen_anchor_term(state: RefineState, index: int, view: TrainView, bg: torch.Tensor,

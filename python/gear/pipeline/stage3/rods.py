@@ -19,31 +19,32 @@ from gear.kinematics import (
     quat_from_matrix,
     quat_to_matrix,
 )
+from gear.pipeline.stage2.hypotheses import fit_plane
+from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY
 from gear.pipeline.stage3.shared import RefineState
 
-# A part is a rod when the spread of its opaque centres along its longest direction is at
-# least this many times that along the next: thin enough that a twist moves its surface by
-# little (the real faucet's levers: 8-10 at the quick profile, 17-18 at fast; a stapler's
-# arm, whose twist the images do see: 4.2; doors: 1-2.5).
+# A part is a rod when the extent of its opaque centres along its longest direction (stage 2's
+# robust principal extents) is at least this many times that along the next: thin enough that
+# a twist moves its surface by little (the real faucet's levers: 8-11 at the quick profile,
+# 12-14 at fast; a stapler's arm, whose twist the images do see: 4.2-4.5; doors: 1-2.5).
 ROD_ASPECT = 6.0
-# ... and round: its cross-section spreads at most this many times more one way than the
-# other (the faucet's levers: 1.2-1.3). A flat bar (a temple of glasses: 6) shows its twist.
+# ... and round: its cross-section is at most this many times wider one way than the other
+# (the faucet's levers: 1.0-1.2). A flat bar (a temple of glasses: 6) shows its twist.
 MAX_CROSS_SECTION_ASPECT = 2.0
 # Only the twist is dropped: the swing must carry at least this share of the turn. A rod
 # spinning about its own length (a knob) swings by nothing and keeps its motion.
 MIN_SWING_SHARE = 0.8
-# Centres that count for the part's shape (stage 2's threshold: surface, not haze).
-MIN_OPACITY = 0.5
 MIN_CENTRES = 10
 
 
 def untwist_rods(state: RefineState) -> list[dict]:
     """Replaces each rod-like hinge's motion in `state.motion` by its swing; returns a record
     per part changed: its twist and how far its axis moved (degrees), the largest shift of its
-    centres and the spreads of its shape."""
+    centres and the principal extents of its shape."""
     g, motion = state.gaussians, state.motion
     ids = g.part_ids()
-    opaque = torch.sigmoid(g["opacity"].detach()) > MIN_OPACITY
+    # Surface, not haze: the centres stage 2 reads shapes from.
+    opaque = torch.sigmoid(g["opacity"].detach()) > STAGE2_MIN_OPACITY
     means = g["means"].detach().to(torch.float64)
     qr, qd = motion.motion()
     changed = []
@@ -66,15 +67,16 @@ def rod_swing(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor,
     """(unit quaternion, translation, record) of the swing of the rod `points` [N,3] under
     the motion x -> R(quat) x + trans, or None when the points are no round rod or the turn
     is mostly a twist about their length."""
-    centre = points.mean(0)
-    spread, directions = torch.linalg.eigh(torch.cov((points - centre).T))
-    spread = spread.clamp(min=0).sqrt()  # ascending
-    # Written so that a degenerate cluster (every spread 0) is no rod.
-    thin = spread[2] > ROD_ASPECT * spread[1]
-    round_ = spread[1] <= MAX_CROSS_SECTION_ASPECT * spread[0]
+    shape = fit_plane(points.numpy())
+    extents = torch.from_numpy(shape.extents).to(points.dtype)  # along shape.axes' rows
+    across = extents[1:].sort().values
+    # Written so that a degenerate cluster (every extent 0) is no rod.
+    thin = extents[0] > ROD_ASPECT * across[1]
+    round_ = across[1] <= MAX_CROSS_SECTION_ASPECT * across[0]
     if not (thin and round_):
         return None
-    length = directions[:, 2]
+    centre = points.mean(0)
+    length = torch.from_numpy(shape.axes[0]).to(points.dtype)
     rot = quat_to_matrix(quat)
     turned = rot @ length
     axis = torch.linalg.cross(length, turned)
@@ -94,7 +96,7 @@ def rod_swing(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor,
     moved = (points @ (swing_rot - rot).T + swing_trans - trans).norm(dim=1)
     record = {
         "moved_max": float(moved.max()),
-        "spread": [round(float(x), 5) for x in spread.flip(0)],
+        "extents": [round(float(x), 5) for x in extents],
         "twist_deg": float(torch.rad2deg(quat_angle(quat_from_matrix(swing_rot.T @ rot)))),
         "axis_moved_deg": float(torch.rad2deg(torch.arccos((axis @ old_axis).abs().clamp(max=1)))),
     }
