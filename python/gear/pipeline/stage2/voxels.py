@@ -32,6 +32,12 @@ from gear.pipeline.stage2.hypotheses import (
 # A hinge and a slide landing within this fraction of each other are both kept as candidates
 # (stage 3 picks by the images); among slides this close, the shortest wins.
 TIE_MARGIN = 0.1
+# ... and when both explain enough of the change to claim a part, a slide covering at least
+# this much more of it than the hinge goes first; otherwise the hinge does. A drawer's slide
+# covers 0.18-0.33 more than the turns that also land it (a real tall cabinet, five training
+# seeds); a door opened 180° lands shifted about as well as turned, its slide covering 0.07
+# more by chance.
+EXPLAIN_MARGIN = 0.15
 SLIDE_TOLERANCE = 0.05
 # With the target images at hand, the shifts ranking at least this share of the best voxel
 # landing (at most RECHECK_SLIDES of them) are judged again by what the images see, when they
@@ -347,6 +353,20 @@ def _swept_turns(
             and split.score(cells, "hinge", r, t).landed >= BLOB_LANDED]
 
 
+def near_tie_order(first: Hypothesis, second: Hypothesis) -> tuple[Hypothesis, Hypothesis]:
+    """A hinge and a slide landing about as well, in the order stage 3 gets them: the hinge
+    first, unless the slide covers clearly more of what changed (EXPLAIN_MARGIN). Stage 3 can
+    turn a hinge into a slide (the ε rule), but a part that starts sliding never grows the
+    rotation of a door: the images then have to reject a slide the model was already trained
+    for (docs/method.md, "Stage 2"). A hinge explaining too little to claim a part is no
+    contender, yet still goes first: such a piece is mostly a fragment of a door, which the
+    door's part then takes in (parts._moves_along compares with the piece's first reading)."""
+    hinge, slide = (second, first) if first.kind == "slide" else (first, second)
+    slide_first = (hinge.explained >= DETECT_OVERLAP
+                   and slide.explained >= hinge.explained + EXPLAIN_MARGIN)
+    return (slide, hinge) if slide_first else (hinge, slide)
+
+
 def init_motion(
     split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, of_size: int | None = None,
     sweep: bool = True,
@@ -363,7 +383,7 @@ def init_motion(
     centres land closest (VoxelSplit.surface_fit), and the best whole-voxel slide. Among those
     explaining enough target change, the one landing most cells on target matter wins (a hinge
     on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
-    follows when it lands within TIE_MARGIN of the winner (a hinge that close goes first), or
+    follows when it lands within TIE_MARGIN of the winner (near_tie_order puts them in order), or
     whatever it lands when it is a fold: a slab turned by half a turn shows the other state its
     formerly hidden face, so half of it lands where that state saw nothing (the back of a closed
     door), while a slide of the symmetric slab lands both faces; the voxels cannot tell the two
@@ -439,12 +459,8 @@ def init_motion(
     chosen = [best]
     if others:
         runner = max(others, key=lambda h: h.landed)
-        if best.kind == "slide" and runner.landed >= best.landed - TIE_MARGIN:
-            # Near-tie: the hinge goes first. Stage 3 can turn a hinge into a slide (the ε
-            # rule), but a part that starts sliding never grows the rotation of a door: the
-            # images then have to reject a slide the model was already trained for
-            # (docs/method.md, "Stage 2").
-            best, runner = runner, best
+        if runner.landed >= best.landed - TIE_MARGIN:
+            best, runner = near_tie_order(best, runner)
         chosen = [best, runner]
     if spare_hinge is not None and any(h.kind == "hinge" for h in chosen):
         chosen.append(spare_hinge)
