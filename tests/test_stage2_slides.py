@@ -1,7 +1,7 @@
 """Stage 2's slides of drawers: a push-in judged by what the target images can see (its box goes
 where the closed state reconstructed nothing), two drawers of one column pulled by the
-same travel kept as two parts, and a slide that covers clearly more of the change than a hinge
-landing as well goes first."""
+same travel kept as two parts, a slide that covers clearly more of the change than a hinge
+landing as well goes first, and a deep drawer pushed in claims the change its front shows."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gear.pipeline.stage2.hypotheses import Hypothesis
-from gear.pipeline.stage2.parts import _first_on_free_matter, coarse_init
+from gear.pipeline.stage2.hypotheses import DETECT_OVERLAP, Hypothesis
+from gear.pipeline.stage2.parts import _first_on_free_matter, change_in_sight, coarse_init
 from gear.pipeline.stage2.voxels import near_tie_order, split_static_dynamic
 from test_coarse import FRONT, box_surface, hinge_motion
 
@@ -62,6 +62,38 @@ def test_push_in_is_chosen_when_the_images_see_its_box_hidden():
     split.surface_tolerance = 2 * VOXEL
     seen = split.best_slide(mask)
     assert np.linalg.norm(seen - PUSH) < 1.5 * VOXEL, seen
+
+
+def test_a_deep_drawer_pushed_in_claims_the_change_its_front_shows():
+    """A drawer twice as deep as wide pushed in by 0.6: the closed state shows only its front,
+    and another part's panel changes elsewhere (the target's change is mostly not the
+    drawer's). Counted over all its cells the true slide covers too little of the change to
+    claim a part; over the cells the target images can see where it puts them, the front,
+    it covers most of it."""
+    rng = np.random.default_rng(0)
+    push = np.array([0.0, 0.6, 0.0])
+
+    def deep_drawer(offset):
+        return box_surface([0, 0, 0], [0.4, 0.8, 0.2], 4000, rng, skip=(5,)) + offset
+
+    pushed = deep_drawer(push)
+    panel = box_surface([1.0, 0.0, 0.0], [1.05, 1.5, 1.5], 8000, rng)
+    target = np.concatenate([pushed[pushed[:, 1] <= push[1] + 1e-9], panel])
+
+    def in_sight(points, tolerance):
+        on = cKDTree(target).query(points)[0] < tolerance
+        inside = (points[:, 1] > push[1] + tolerance) & (points[:, 0] < 0.45)
+        return on, ~on & ~inside
+
+    split = split_static_dynamic(deep_drawer(np.zeros(3)), target, VOXEL)
+    cells = np.argwhere(split.labels[0] > 0)
+    slide = split.score(cells, "slide", np.eye(3), push)
+    assert slide.trusted and slide.explained < DETECT_OVERLAP, slide
+    shown = change_in_sight(split, cells, slide, in_sight, 2 * VOXEL)
+    assert shown >= 2 * DETECT_OVERLAP, shown
+    # Nothing in sight claims nothing.
+    assert change_in_sight(split, cells, slide, lambda p, t: (np.zeros(len(p), bool),) * 2,
+                           2 * VOXEL) == 0.0
 
 
 def two_drawers_one_column(travel=0.35, n=16000, seed=3):
