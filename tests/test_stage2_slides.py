@@ -89,11 +89,13 @@ def test_a_deep_drawer_pushed_in_claims_the_change_its_front_shows():
     cells = np.argwhere(split.labels[0] > 0)
     slide = split.score(cells, "slide", np.eye(3), push)
     assert slide.trusted and slide.explained < DETECT_OVERLAP, slide
-    shown = change_in_sight(split, cells, slide, in_sight, 2 * VOXEL)
+    assert change_in_sight(split, cells, slide) == 0.0  # no images, nothing in sight
+    split.on_surface, split.surface_tolerance = in_sight, 2 * VOXEL
+    shown = change_in_sight(split, cells, slide)
     assert shown >= 2 * DETECT_OVERLAP, shown
     # Nothing in sight claims nothing.
-    assert change_in_sight(split, cells, slide, lambda p, t: (np.zeros(len(p), bool),) * 2,
-                           2 * VOXEL) == 0.0
+    split.on_surface = lambda p, t: (np.zeros(len(p), bool),) * 2
+    assert change_in_sight(split, cells, slide) == 0.0
 
 
 def two_drawers_one_column(travel=0.35, n=16000, seed=3):

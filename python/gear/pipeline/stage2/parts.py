@@ -199,16 +199,18 @@ def seen_change(
     return float(min(landed_share, vacated_share))
 
 
-def change_in_sight(split: VoxelSplit, cells: np.ndarray, motion: Hypothesis,
-                    on_surface: SurfaceTest, tolerance: float) -> float:
+def change_in_sight(split: VoxelSplit, cells: np.ndarray, motion: Hypothesis) -> float:
     """The share of target change that `cells` [M, 3] moved by `motion` cover (as
-    Hypothesis.explained), counted over the moved cells the target images can see where they
-    land (on the surface or seen through). A drawer pushed in puts most of its box inside the
+    Hypothesis.explained), counted over the moved cells the target images (`split.on_surface`,
+    within `split.surface_tolerance`) can see where they land (on the surface or seen
+    through); 0 without images. A drawer pushed in puts most of its box inside the
     cabinet, where the closed state has no matter and no view looks: counted over all its
     cells, the true slide of a real tall cabinet's drawer covered 0.285, under DETECT_OVERLAP;
     over those in sight, its front, 0.52."""
+    if split.on_surface is None:
+        return 0.0
     moved = split.grid.centres(cells) @ np.asarray(motion.rot).T + np.asarray(motion.trans)
-    on, seen_through = on_surface(moved, tolerance)
+    on, seen_through = split.on_surface(moved, split.surface_tolerance)
     in_sight = cells[on | seen_through]
     if len(in_sight) == 0:
         return 0.0
@@ -380,17 +382,15 @@ def find_parts(
                 if len(points) < 4:
                     continue
                 hyps = init_motion(split, mask, points)
-        hyps, free = _first_on_free_matter(split, claimed, np.argwhere(mask), hyps)
+        cells = np.argwhere(mask)  # what is left of the piece once cut
+        hyps, free = _first_on_free_matter(split, claimed, cells, hyps)
         if free is not None:
             notes.append(f"component {comp}: its {hyps[1].kind} lands only {free:.2f} on "
                          f"matter no earlier part lands on: {hyps[0].kind} first")
-        tolerance = SURFACE_TOLERANCE_VOXELS * voxel_size
         detected = hyps[0].explained >= DETECT_OVERLAP or (
-            on_surface is not None and hyps[0].trusted
-            and change_in_sight(split, np.argwhere(mask), hyps[0], on_surface, tolerance)
-            >= DETECT_OVERLAP)
+            hyps[0].trusted and change_in_sight(split, cells, hyps[0]) >= DETECT_OVERLAP)
         if detected and wanted is None and on_surface is not None:
-            seen = seen_change(points, hyps[0], on_surface, tolerance)
+            seen = seen_change(points, hyps[0], on_surface, split.surface_tolerance)
             detected = seen >= MIN_SEEN_CHANGE
             if not detected:
                 notes.append(f"component {comp} not a part: the target images see only "
@@ -398,7 +398,7 @@ def find_parts(
         if hyps[0].trusted and (detected or wanted is not None):
             if wanted is None or len(parts) < wanted:
                 parts.append(_Part([comp], hyps))
-                claimed |= split.landing_cells(np.argwhere(mask), hyps[0])
+                claimed |= split.landing_cells(cells, hyps[0])
         else:
             spare.append(_Part([comp], [IDENTITY]))
     if wanted is not None:

@@ -75,7 +75,7 @@ def rod_swing(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor,
     round_ = across[1] <= MAX_CROSS_SECTION_ASPECT * across[0]
     if not (thin and round_):
         return None
-    centre = points.mean(0)
+    centre = torch.from_numpy(shape.centroid).to(points.dtype)
     length = torch.from_numpy(shape.axes[0]).to(points.dtype)
     rot = quat_to_matrix(quat)
     turned = rot @ length
