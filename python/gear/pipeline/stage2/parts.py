@@ -387,14 +387,10 @@ def find_parts(
         if free is not None:
             notes.append(f"component {comp}: its {hyps[1].kind} lands only {free:.2f} on "
                          f"matter no earlier part lands on: {hyps[0].kind} first")
-        detected = hyps[0].explained >= DETECT_OVERLAP or (
-            hyps[0].trusted and change_in_sight(split, cells, hyps[0]) >= DETECT_OVERLAP)
-        if detected and wanted is None and on_surface is not None:
-            seen = seen_change(points, hyps[0], on_surface, split.surface_tolerance)
-            detected = seen >= MIN_SEEN_CHANGE
-            if not detected:
-                notes.append(f"component {comp} not a part: the target images see only "
-                             f"{seen:.2f} of it move")
+        detected, seen = _claims_a_part(split, cells, points, hyps[0], images=wanted is None)
+        if seen is not None:
+            notes.append(f"component {comp} not a part: the target images see only "
+                         f"{seen:.2f} of it move")
         if hyps[0].trusted and (detected or wanted is not None):
             if wanted is None or len(parts) < wanted:
                 parts.append(_Part([comp], hyps))
@@ -404,6 +400,22 @@ def find_parts(
     if wanted is not None:
         parts += spare[: max(0, wanted - len(parts))]
     return parts, canon_labels, notes
+
+
+def _claims_a_part(split: VoxelSplit, cells: np.ndarray, points: np.ndarray,
+                   motion: Hypothesis, images: bool) -> tuple[bool, float | None]:
+    """Whether the piece `cells` (holding the canonical centres `points`) moved by `motion`
+    claims a part: its motion explains DETECT_OVERLAP of the change it maps onto, over all
+    its moved cells or (a trusted motion) over those in sight (change_in_sight); and, when
+    `images` and the split has them, the target images see it move (seen_change >=
+    MIN_SEEN_CHANGE). Returns the verdict and, when the images alone rejected it, how much of
+    it they saw move (else None)."""
+    detected = motion.explained >= DETECT_OVERLAP or (
+        motion.trusted and change_in_sight(split, cells, motion) >= DETECT_OVERLAP)
+    if not (detected and images and split.on_surface is not None):
+        return detected, None
+    seen = seen_change(points, motion, split.on_surface, split.surface_tolerance)
+    return seen >= MIN_SEEN_CHANGE, (None if seen >= MIN_SEEN_CHANGE else seen)
 
 
 def _first_on_free_matter(split: VoxelSplit, claimed: np.ndarray, cells: np.ndarray,
