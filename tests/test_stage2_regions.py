@@ -13,12 +13,14 @@ from gear.pipeline.stage2.regions import motion_regions, refine_rigid
 from gear.pipeline.stage2.voxels import Scale, init_motion, split_static_dynamic
 from test_coarse import FRONT, box_surface, hinge_motion
 
-NOISE = 0.01  # centre jitter, about a third of the voxel: a reconstruction's, not a mesh's
+NOISE = 0.01  # centre jitter, about a third of the voxel: a quick reconstruction's
+FINE_NOISE = 0.004  # a longer-trained reconstruction's, about a seventh of the voxel
 
 
-def stacked_doors(top_deg: float, bottom_deg: float, n: int = 8000, seed: int = 0):
+def stacked_doors(top_deg: float, bottom_deg: float, n: int = 8000, seed: int = 0,
+                  noise: float = NOISE):
     """A cabinet with a top and a bottom door on one left hinge line (axis -z), opened by
-    `top_deg` and `bottom_deg`; centres jittered by NOISE. Returns (closed, open, which
+    `top_deg` and `bottom_deg`; centres jittered by `noise`. Returns (closed, open, which
     door each open-state centre belongs to: 0 body, 1 top, 2 bottom)."""
     rng = np.random.default_rng(seed)
     axis, pivot = np.array([0.0, 0.0, -1.0]), np.array([0.0, -0.025, 0.0])
@@ -33,16 +35,16 @@ def stacked_doors(top_deg: float, bottom_deg: float, n: int = 8000, seed: int = 
                 door[:] = door @ rot.T + trans
         points = np.concatenate([body, top, bottom])
         owner = np.repeat([0, 1, 2], [len(body), len(top), len(bottom)])
-        return points + rng.normal(0.0, NOISE, points.shape), owner
+        return points + rng.normal(0.0, noise, points.shape), owner
 
     (closed, _), (opened, owner) = state(False), state(True)
     return closed, opened, owner
 
 
-def regions_of_the_doors(top_deg: float, bottom_deg: float):
+def regions_of_the_doors(top_deg: float, bottom_deg: float, noise: float = NOISE):
     """The regions of the open state's largest dynamic piece, each as the count of its
     centres per owner (body, top, bottom)."""
-    closed, opened, owner = stacked_doors(top_deg, bottom_deg)
+    closed, opened, owner = stacked_doors(top_deg, bottom_deg, noise=noise)
     size = Scale.of(np.concatenate([opened, closed])).voxel_size(single_part=False)
     split = split_static_dynamic(opened, closed, size)
     labels = split.grid.point_labels(opened, split.labels[0])
@@ -55,17 +57,33 @@ def regions_of_the_doors(top_deg: float, bottom_deg: float):
     return [np.bincount(owners[r[tuple(cells.T)]], minlength=3) for r in regions]
 
 
-def test_doors_on_one_hinge_turned_apart_are_two_regions():
-    regions = regions_of_the_doors(40.0, 20.0)
+# Real cabinets' stacked doors (cupboard, 9.4 and 4.3 degrees apart) at a fine model's noise
+# are not yet cut: against the regions' coarse candidates, the pair's motion refined by ICP
+# wins. Refining each region's own motion as well cuts both, but on the real asset suite's
+# models it also cut single rigid parts in two (a stapler's lid at the fast profile: 4 -> 5
+# stage-2 parts), so the merge cost would first have to be set from the data (docs/method.md,
+# "Splitting by the motions of regions"). Near the shared hinge the two motions move centres
+# by less than the noise, so some of those go to the other door.
+_NOT_YET = pytest.mark.xfail(strict=True, reason="stacked doors a few degrees apart stay one "
+                             "region: the merge compares a refined motion with coarse ones")
+
+
+@pytest.mark.parametrize("top_deg, bottom_deg, noise, purity", [
+    (40.0, 20.0, NOISE, 0.95),
+    pytest.param(40.7, 31.3, FINE_NOISE, 0.95, marks=_NOT_YET),
+    pytest.param(22.6, 18.3, FINE_NOISE, 0.9, marks=_NOT_YET)])
+def test_doors_on_one_hinge_turned_apart_are_two_regions(top_deg, bottom_deg, noise, purity):
+    regions = regions_of_the_doors(top_deg, bottom_deg, noise)
     assert len(regions) == 2
     for counts in regions:
-        # Each region is one door (a few centres of the other near the shared hinge).
-        assert counts[1:].max() >= 0.95 * counts.sum()
+        # Each region is one door (some centres of the other near the shared hinge).
+        assert counts[1:].max() >= purity * counts.sum()
     assert {int(np.argmax(c[1:])) for c in regions} == {0, 1}
 
 
-def test_doors_turned_alike_are_one_region():
-    regions = regions_of_the_doors(30.0, 30.0)
+@pytest.mark.parametrize("noise", [NOISE, FINE_NOISE])
+def test_doors_turned_alike_are_one_region(noise):
+    regions = regions_of_the_doors(30.0, 30.0, noise)
     assert len(regions) == 1
 
 
