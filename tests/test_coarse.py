@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 from gear.articulation import PartMotion
 from gear.pipeline.stage2.hypotheses import (
     correlate,
+    dominant_plane,
     fit_plane,
     hinge_candidates,
     rotation_about_line,
@@ -210,6 +211,20 @@ def test_door_opened_half_a_turn_keeps_the_fold_as_a_candidate():
     assert folds[0]["angle_deg"] == pytest.approx(180.0, abs=1.0)
     assert abs(np.dot(folds[0]["axis"], axis)) > np.cos(np.radians(3.0))
     assert line_distance(folds[0]["origin"], pivot, axis) < 0.1 * 2.0  # 10 % of the extent
+
+
+def test_dominant_plane_of_a_front_with_matter_behind_it():
+    rng = np.random.default_rng(3)
+    front = box_surface([0, -0.04, 0], [1, -0.01, 1.2], 3000, rng)
+    haze = np.array([0.05, 0.02, 0.05]) + rng.random((3000, 3)) * [0.9, 0.8, 1.1]
+    piece = np.concatenate([front, haze])
+    assert not fit_plane(piece).is_plane  # the whole piece gives no plane to turn onto
+    plane = dominant_plane(piece, tolerance=0.02)
+    assert plane is not None and abs(plane.normal[1]) == pytest.approx(1.0, abs=0.02)
+    assert plane.extents[0] > 1.0  # the front's whole height, not a slice of the haze
+    assert dominant_plane(haze, tolerance=0.02) is None  # a cloud has no dominant plane
+    again = dominant_plane(piece, tolerance=0.02)  # seeded: the same plane every time
+    assert np.array_equal(again.centroid, plane.centroid)
 
 
 def test_drawer_gets_a_slide():

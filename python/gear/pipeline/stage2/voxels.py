@@ -5,7 +5,7 @@ that grid (docs/method.md, "Stage 2")."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.ndimage import maximum_filter
@@ -22,6 +22,7 @@ from gear.pipeline.stage2.hypotheses import (
     Hypothesis,
     Plane,
     correlate,
+    dominant_plane,
     edge_hinges,
     fit_plane,
     hinge_candidates,
@@ -119,6 +120,23 @@ class VoxelSplit:
     # best_slide then also asks the images (see there).
     on_surface: SurfaceTest | None = None
     surface_tolerance: float = 0.0
+    # The planes of `pieces`, fitted once per split (init_motion reads them for every piece
+    # and chunk): index -> (its fit_plane, its dominant plane or None).
+    _piece_planes: dict[int, tuple[Plane, Plane | None]] = field(default_factory=dict,
+                                                                 repr=False)
+
+    def piece_plane(self, index: int, dominant: bool = False) -> Plane | None:
+        """The plane of target piece `index` (fit_plane of its centres), or with `dominant`
+        the plane holding most of them within a voxel (hypotheses.dominant_plane; None when
+        there is none)."""
+        if index not in self._piece_planes:
+            inside = self.pieces[index][1]
+            centres = self.target_tree.data[inside]
+            whole = fit_plane(centres)
+            self._piece_planes[index] = (
+                whole, None if whole.is_plane else dominant_plane(centres, self.grid.voxel_size))
+        whole, best = self._piece_planes[index]
+        return best if dominant else whole
 
     def _moved(self, src_cells: np.ndarray, rot: np.ndarray,
                trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -327,9 +345,8 @@ def in_plane_turns(
 
 def _target_planes(split: VoxelSplit, floor: float) -> list[Plane]:
     """The planes of the SWEEP_TARGETS largest target pieces of at least `floor` voxels."""
-    target = split.target_tree.data
-    return [fit_plane(target[inside]) for size, inside in split.pieces[:SWEEP_TARGETS]
-            if size >= floor]
+    return [split.piece_plane(index)
+            for index, (size, _) in enumerate(split.pieces[:SWEEP_TARGETS]) if size >= floor]
 
 
 def _swept_turns(
@@ -397,10 +414,14 @@ def init_motion(
     fold_offsets = split.grid.voxel_size * np.arange(-2.0, 2.5, 0.5)
     floor = max(MIN_PART_VOXELS, 0.2 * (of_size or len(src_cells)))
     if canon_plane.is_plane or canon_plane.is_rod:
-        for size, inside in split.pieces:
+        for index, (size, _) in enumerate(split.pieces):
             if size < floor:
                 break
-            plane = fit_plane(split.target_tree.data[inside])
+            plane = split.piece_plane(index)
+            if canon_plane.is_plane and not plane.is_plane:
+                # A door closed into a front with matter behind it: its turn onto the
+                # piece's dominant plane.
+                plane = split.piece_plane(index, dominant=True) or plane
             fold = abs(float(np.dot(canon_plane.normal, plane.normal))) > PARALLEL_COS
             turns = []
             if canon_plane.is_plane and plane.is_plane:
