@@ -121,22 +121,20 @@ class VoxelSplit:
     on_surface: SurfaceTest | None = None
     surface_tolerance: float = 0.0
     # The planes of `pieces`, fitted once per split (init_motion reads them for every piece
-    # and chunk): index -> (its fit_plane, its dominant plane or None).
-    _piece_planes: dict[int, tuple[Plane, Plane | None]] = field(default_factory=dict,
-                                                                 repr=False)
+    # and chunk): (index, dominant) -> piece_plane's answer.
+    _piece_planes: dict[tuple[int, bool], Plane | None] = field(default_factory=dict,
+                                                                repr=False)
 
     def piece_plane(self, index: int, dominant: bool = False) -> Plane | None:
         """The plane of target piece `index` (fit_plane of its centres), or with `dominant`
         the plane holding most of them within a voxel (hypotheses.dominant_plane; None when
         there is none)."""
-        if index not in self._piece_planes:
-            inside = self.pieces[index][1]
-            centres = self.target_tree.data[inside]
-            whole = fit_plane(centres)
-            self._piece_planes[index] = (
-                whole, None if whole.is_plane else dominant_plane(centres, self.grid.voxel_size))
-        whole, best = self._piece_planes[index]
-        return best if dominant else whole
+        key = (index, dominant)
+        if key not in self._piece_planes:
+            centres = self.target_tree.data[self.pieces[index][1]]
+            self._piece_planes[key] = (dominant_plane(centres, self.grid.voxel_size) if dominant
+                                       else fit_plane(centres))
+        return self._piece_planes[key]
 
     def _moved(self, src_cells: np.ndarray, rot: np.ndarray,
                trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
