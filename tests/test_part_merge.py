@@ -83,6 +83,18 @@ def test_distinct_parts_stay():
     assert torch.equal(s.gaussians["logits"].detach(), before)
 
 
+@pytest.mark.parametrize("angles", [(40.7, 31.3), (22.6, 18.3)])
+def test_doors_stacked_on_one_hinge_line_stay_two_parts(angles):
+    """Two doors above each other on one hinge line, turned by different angles (a real
+    cupboard's): neither's motion explains the other (stage 2 hands such a pair to stage 3
+    cut in two, pipeline.stage2.stacked, and relies on this)."""
+    blocks = [(wall(), 0), (plank(-0.3, 0.0, z=0.15), 1), (plank(-0.3, 0.0, z=-0.15), 2)]
+    truth = [hinge(angles[0]), hinge(angles[1])]
+    s = stage(blocks, truth, truth)
+    assert merge_parts(s) == []
+    assert s.live_parts() == [1, 2]
+
+
 def test_two_drawers_pulled_alike_stay_two_parts(monkeypatch):
     """Two drawers of a column (one above the other) pulled by the same travel: one motion
     explains both, but the lower one is not in line with the upper along the slide."""

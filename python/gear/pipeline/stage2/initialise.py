@@ -15,6 +15,7 @@ from gear.data.scene import STATES
 from gear.pipeline.common import TrainView
 from gear.pipeline.runner import Runner
 from gear.pipeline.stage2.parts import coarse_init
+from gear.pipeline.stage2.stacked import split_stacked
 from gear.pipeline.stage2.surface import SurfaceTest
 from gear.splats import Gaussians
 
@@ -101,14 +102,18 @@ def initialise_parts(models: dict[str, Gaussians], views: dict[str, list[TrainVi
     canonical = init.canonical
     logits = spread_logits(centres[canonical], keep[canonical],
                            np.asarray(init.logits, dtype=np.float32))
+    candidates, notes = init.candidates, list(init.notes)
+    if c.split_stacked_hinges and c.num_parts is None and c.merge_redundant_parts:
+        logits, candidates, cuts = split_stacked(logits, candidates, centres[canonical])
+        notes += cuts
     result = Stage2Result(
         canonical=canonical,
-        num_parts=int(init.num_parts),
+        num_parts=int(logits.shape[1]),
         logits=torch.as_tensor(logits),
         candidates=[[(np.asarray(r), np.asarray(t)) for r, t in part]
-                    for part in init.candidates],
+                    for part in candidates],
         voxel_size=init.voxel_size,
-        notes=list(init.notes),
+        notes=notes,
     )
     runner.timings["stage2"] = time.perf_counter() - t0
     for state in STATES:
@@ -118,9 +123,9 @@ def initialise_parts(models: dict[str, Gaussians], views: dict[str, list[TrainVi
             "all: a state is under half opaque, not yet binarised")
         runner.log.say(f"stage2: {used} of {len(keep[state])} {state} centres ({reason}; "
                        f"{opaque} above opacity {STAGE2_MIN_OPACITY})")
-    for note in init.notes:
+    for note in notes:
         runner.log.say(f"stage2: {note}")
-    runner.log.say(f"stage2: canonical state '{canonical}', {init.num_parts} part(s)")
+    runner.log.say(f"stage2: canonical state '{canonical}', {result.num_parts} part(s)")
     runner.log.write({"event": "stage_done", "stage": "stage2",
                       "seconds": runner.timings["stage2"]})
     runner.finished("coarse", result.to_checkpoint())
