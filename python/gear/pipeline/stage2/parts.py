@@ -415,7 +415,9 @@ def _claims_a_part(split: VoxelSplit, cells: np.ndarray, points: np.ndarray,
     if not (detected and images and split.on_surface is not None):
         return detected, None
     seen = seen_change(points, motion, split.on_surface, split.surface_tolerance)
-    return seen >= MIN_SEEN_CHANGE, (None if seen >= MIN_SEEN_CHANGE else seen)
+    if seen >= MIN_SEEN_CHANGE:
+        return True, None
+    return False, seen
 
 
 def _first_on_free_matter(split: VoxelSplit, claimed: np.ndarray, cells: np.ndarray,

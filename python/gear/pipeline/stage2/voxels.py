@@ -121,20 +121,23 @@ class VoxelSplit:
     on_surface: SurfaceTest | None = None
     surface_tolerance: float = 0.0
     # The planes of `pieces`, fitted once per split (init_motion reads them for every piece
-    # and chunk): (index, dominant) -> piece_plane's answer.
-    _piece_planes: dict[tuple[int, bool], Plane | None] = field(default_factory=dict,
-                                                                repr=False)
+    # and chunk): least-squares planes and dominant planes, by piece index.
+    _piece_planes: dict[int, Plane] = field(default_factory=dict, repr=False)
+    _dominant_planes: dict[int, Plane | None] = field(default_factory=dict, repr=False)
 
-    def piece_plane(self, index: int, dominant: bool = False) -> Plane | None:
-        """The plane of target piece `index` (fit_plane of its centres), or with `dominant`
-        the plane holding most of them within a voxel (hypotheses.dominant_plane; None when
-        there is none)."""
-        key = (index, dominant)
-        if key not in self._piece_planes:
+    def piece_plane(self, index: int) -> Plane:
+        """The least-squares plane (fit_plane) of target piece `index`'s centres."""
+        if index not in self._piece_planes:
+            self._piece_planes[index] = fit_plane(self.target_tree.data[self.pieces[index][1]])
+        return self._piece_planes[index]
+
+    def dominant_piece_plane(self, index: int) -> Plane | None:
+        """The plane holding most of target piece `index`'s centres within a voxel
+        (hypotheses.dominant_plane), or None when there is none."""
+        if index not in self._dominant_planes:
             centres = self.target_tree.data[self.pieces[index][1]]
-            self._piece_planes[key] = (dominant_plane(centres, self.grid.voxel_size) if dominant
-                                       else fit_plane(centres))
-        return self._piece_planes[key]
+            self._dominant_planes[index] = dominant_plane(centres, self.grid.voxel_size)
+        return self._dominant_planes[index]
 
     def _moved(self, src_cells: np.ndarray, rot: np.ndarray,
                trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -419,7 +422,7 @@ def init_motion(
             if canon_plane.is_plane and not plane.is_plane:
                 # A door closed into a front with matter behind it: its turn onto the
                 # piece's dominant plane.
-                plane = split.piece_plane(index, dominant=True) or plane
+                plane = split.dominant_piece_plane(index) or plane
             fold = abs(float(np.dot(canon_plane.normal, plane.normal))) > PARALLEL_COS
             turns = []
             if canon_plane.is_plane and plane.is_plane:
