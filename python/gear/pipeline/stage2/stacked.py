@@ -16,8 +16,8 @@ from gear.metrics import rotation_angle_deg
 from gear.pipeline.stage2.hypotheses import axis_of
 
 # A part is cut in two when its extent along its hinge axis is at least this many times its
-# extent across (in the plane of its two widest directions): doors stacked on one line are
-# tall. A lever, a lid or a temple of glasses is thin along its hinge and is never cut.
+# extent across (along its widest direction perpendicular to the axis): doors stacked on one
+# line are tall. A lever, a lid or a temple of glasses is thin along its hinge: never cut.
 STACK_ASPECT = 1.5
 # Extents between these percentiles of the part's centres (a stray Gaussian does not count).
 EXTENT_PERCENTILES = (2.0, 98.0)
