@@ -23,6 +23,9 @@ from gear.kinematics import (
     quat_to_matrix,
 )
 
+#: A rigid motion in numpy, ``(R [3, 3], t [3])``: p -> R p + t, canonical state -> target state.
+RigidMotion = tuple[np.ndarray, np.ndarray]
+
 # A rotation smaller than this (degrees) is reported as a pure translation by extract_joint
 # when the caller does not say which joint type the part has.
 _PRISMATIC_ANGLE_DEG = 1e-3
@@ -47,7 +50,7 @@ class PartMotion(torch.nn.Module):
     @classmethod
     def from_rt(
         cls,
-        motions: Sequence[tuple[np.ndarray, np.ndarray]],
+        motions: Sequence[RigidMotion],
         dtype: torch.dtype = torch.float32,
     ) -> PartMotion:
         """One part per (R 3x3, t 3) of the movable parts, plus the static part 0."""
@@ -174,7 +177,7 @@ class JointHypothesis:
 
 
 def joint_hypotheses(
-    motion: PartMotion, k: int, extra: Sequence[tuple[np.ndarray, np.ndarray]] = ()
+    motion: PartMotion, k: int, extra: Sequence[RigidMotion] = ()
 ) -> list[JointHypothesis]:
     """Candidates for part k: its current motion read as a hinge, the slide keeping its
     translation, and each extra (R, t) (e.g. stage 2's hinge and slide guesses), typed
@@ -199,7 +202,7 @@ def joint_hypotheses(
 
 
 def joint_readings(
-    motion: PartMotion, k: int, extra: Sequence[tuple[np.ndarray, np.ndarray]] = ()
+    motion: PartMotion, k: int, extra: Sequence[RigidMotion] = ()
 ) -> list[tuple[JointHypothesis, PartMotion]]:
     """Each hypothesis of joint_hypotheses(motion, k, extra) with its own copy of `motion`
     whose part k is set to it: the readings a caller scores (and may tune in place)."""

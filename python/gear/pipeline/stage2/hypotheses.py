@@ -11,6 +11,8 @@ import numpy as np
 from scipy.signal import fftconvolve
 from scipy.spatial import cKDTree
 
+from gear.articulation import RigidMotion
+
 # max/min principal extent above which a component is a plane (may turn on a hinge). Not 3: a
 # door reconstructed from few, small views blurs into what lies behind it (docs/method.md,
 # "Stage 2"); the scores still decide between hinge and slide.
@@ -136,7 +138,7 @@ def dominant_plane(points: np.ndarray, tolerance: float, seed: int = 0) -> Plane
 
 def rotation_about_line(
     axis: np.ndarray, pivot: np.ndarray, angle: float
-) -> tuple[np.ndarray, np.ndarray]:
+) -> RigidMotion:
     """(R, t) of a right-handed rotation by `angle` radians about the line (pivot, axis)."""
     a = np.asarray(axis, dtype=np.float64)
     a = a / np.linalg.norm(a)
@@ -148,7 +150,7 @@ def rotation_about_line(
 
 def hinge_candidates(
     src: Plane, dst: Plane, fold_offsets: Sequence[float] = (0.0,)
-) -> list[tuple[np.ndarray, np.ndarray]]:
+) -> list[RigidMotion]:
     """Rotations about the intersection line of two planes taking `src` onto `dst`.
 
     Axis n_s x n_t, pivot the least-squares point on both planes (midway between the centroids
@@ -220,7 +222,7 @@ def axis_of(rot: np.ndarray) -> np.ndarray:
     return axis / np.linalg.norm(axis)
 
 
-def edge_hinges(src: Plane, rot: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+def edge_hinges(src: Plane, rot: np.ndarray) -> list[RigidMotion]:
     """The rotation `rot` about lines through the two ends of the piece `src` across its axis
     (along its longest principal direction not along the axis): the two sides a hinge can be
     on. Two planes' intersection line misses a door's hinge by about its thickness over
@@ -239,7 +241,7 @@ def edge_hinges(src: Plane, rot: np.ndarray) -> list[tuple[np.ndarray, np.ndarra
     return [(rot, end - rot @ end) for end in ends]
 
 
-def rod_hinges(src: Plane, dst: Plane) -> list[tuple[np.ndarray, np.ndarray]]:
+def rod_hinges(src: Plane, dst: Plane) -> list[RigidMotion]:
     """Rotations turning the long piece `src` onto the long piece `dst` (a lever, a handle: no
     plane to intersect): axis d_s x d_t of their longest directions, angle between them (and
     that minus pi: the directions' signs are arbitrary), about the point midway between the
@@ -289,7 +291,7 @@ def swept_hinges(
     fit: Callable[[np.ndarray, np.ndarray, np.ndarray], float],
     keep: int = SWEEP_KEEP,
     step_deg: float = SWEEP_STEP_DEG,
-) -> list[tuple[np.ndarray, np.ndarray]]:
+) -> list[RigidMotion]:
     """Turns of a piece with neither a plane nor a long direction (a stapler's lid that a short
     stage 1 leaves a blob): no two planes or lines to intersect, so each axis direction of
     `axes` (near-duplicates skipped) is swept through every `step_deg`. Each turn first

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from gear.articulation import RigidMotion
 from gear.config import TrainConfig
 from gear.data.scene import STATES
 from gear.pipeline.common import TrainView
@@ -24,8 +25,6 @@ from gear.splats import Gaussians
 STAGE2_MIN_OPACITY = 0.5
 STAGE2_MIN_OPAQUE_FRACTION = 0.5
 
-Motion = tuple[np.ndarray, np.ndarray]  # (R [3,3], t [3]): canonical -> target
-
 
 @dataclass
 class Stage2Result:
@@ -36,7 +35,7 @@ class Stage2Result:
     canonical: str
     num_parts: int
     logits: torch.Tensor
-    candidates: list[list[Motion]]
+    candidates: list[list[RigidMotion]]
     voxel_size: float
     notes: list[str] = field(default_factory=list)
 
@@ -45,7 +44,7 @@ class Stage2Result:
         return "end" if self.canonical == "start" else "start"
 
     @property
-    def motions(self) -> list[Motion]:
+    def motions(self) -> list[RigidMotion]:
         """The initial motion of each movable part."""
         return [part[0] for part in self.candidates]
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gear import geometry
+from gear.articulation import RigidMotion
 from gear.pipeline.stage2.hypotheses import DETECT_OVERLAP, IDENTITY, Hypothesis, fit_plane
 from gear.pipeline.stage2.regions import AGREE_VOXELS, MERGE_COST, extra_residual, motion_regions
 from gear.pipeline.stage2.voxels import (
@@ -61,12 +62,12 @@ class CoarseInit:
     canonical: str
     num_parts: int
     logits: np.ndarray
-    motions: list[tuple[np.ndarray, np.ndarray]]
+    motions: list[RigidMotion]
     voxel_size: float
     notes: list[str] = field(default_factory=list)
     # Per movable part: its motion first, then any near-tie of the other kind (hinge vs slide)
     # for stage3.joint_types.classify_joints to decide by the images.
-    candidates: list[list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=list)
+    candidates: list[list[RigidMotion]] = field(default_factory=list)
 
 
 def _check_points(points: np.ndarray, name: str) -> np.ndarray:

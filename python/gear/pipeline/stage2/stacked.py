@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gear.articulation import RigidMotion
 from gear.metrics import rotation_angle_deg
 from gear.pipeline.stage2.hypotheses import axis_of
 
@@ -26,15 +27,13 @@ MIN_TURN_DEG = 5.0
 # Each half needs at least this many Gaussians.
 MIN_HALF_GAUSSIANS = 50
 
-Motion = tuple[np.ndarray, np.ndarray]
-
 
 def _extent(values: np.ndarray) -> float:
     low, high = np.percentile(values, EXTENT_PERCENTILES)
     return float(high - low)
 
 
-def stacked_cut(means: np.ndarray, motion: Motion) -> np.ndarray | None:
+def stacked_cut(means: np.ndarray, motion: RigidMotion) -> np.ndarray | None:
     """Which of a part's canonical centres `means` [M, 3] lie beyond the median along its hinge
     axis (that of `motion`, canonical -> target), when the part is a candidate for two stacked
     doors (tall along the axis, turned by MIN_TURN_DEG or more); else None."""
@@ -55,8 +54,8 @@ def stacked_cut(means: np.ndarray, motion: Motion) -> np.ndarray | None:
 
 
 def split_stacked(
-    logits: np.ndarray, candidates: list[list[Motion]], means: np.ndarray
-) -> tuple[np.ndarray, list[list[Motion]], list[str]]:
+    logits: np.ndarray, candidates: list[list[RigidMotion]], means: np.ndarray
+) -> tuple[np.ndarray, list[list[RigidMotion]], list[str]]:
     """Part logits [N, K] and per-movable-part motion candidates with every candidate for two
     stacked doors (stacked_cut of the canonical centres `means` [N, 3] whose largest logit is
     its) cut in two: the half beyond the median becomes a new part, last, with the same

@@ -12,6 +12,7 @@ from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 
 from gear import geometry
+from gear.articulation import RigidMotion
 from gear.pipeline.stage2.hypotheses import (
     DETECT_OVERLAP,
     IDENTITY,
@@ -308,7 +309,7 @@ def target_pieces(
 def blob_hinges(
     split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, floor: float,
     shift: np.ndarray | None,
-) -> list[tuple[np.ndarray, np.ndarray]]:
+) -> list[RigidMotion]:
     """Turns of the cells `src_mask` holding `points`, a piece that is neither a plane nor a
     rod (hypotheses.swept_hinges): about its own principal axes, the target's and those of the
     largest target pieces (at least `floor` voxels). A sweep over so many axes, angles
@@ -325,7 +326,7 @@ def blob_hinges(
 def in_plane_turns(
     split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, floor: float,
     shift: np.ndarray | None,
-) -> list[tuple[np.ndarray, np.ndarray]]:
+) -> list[RigidMotion]:
     """Turns of the flat piece `src_mask` (holding `points`) about its own normal onto the
     target pieces parallel to it, kept as in blob_hinges: a blade of scissors, a swivelling
     lid. A slab turned within its plane stays parallel to itself, so no two planes intersect
@@ -353,7 +354,7 @@ def _target_planes(split: VoxelSplit, floor: float) -> list[Plane]:
 def _swept_turns(
     split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, planes: list[Plane],
     axes: list[np.ndarray], step_deg: float, shift: np.ndarray | None,
-) -> list[tuple[np.ndarray, np.ndarray]]:
+) -> list[RigidMotion]:
     """The swept turns (hypotheses.swept_hinges, every `step_deg` about each of `axes`) of the
     cells `src_mask` holding `points` that land BLOB_LANDED of its cells and fit its centres
     closer than the best slide `shift` (None: there is none) by BLOB_MARGIN. Each starts with

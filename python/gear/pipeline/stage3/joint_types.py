@@ -11,13 +11,17 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
-from gear.articulation import PartMotion, extract_joint, joint_readings, resolve_ambiguous_joint
+from gear.articulation import (
+    PartMotion,
+    RigidMotion,
+    extract_joint,
+    joint_readings,
+    resolve_ambiguous_joint,
+)
 from gear.kinematics import quat_angle
 from gear.pipeline.common import check_finite
 from gear.pipeline.stage3.joints import object_center, object_radius
 from gear.pipeline.stage3.shared import RefineState, motion_optimizer
-
-Motion = tuple[np.ndarray, np.ndarray]  # (R [3,3], t [3])
 
 # A hinge's axis passes within this many object radii of the object's centre: a hinge turning
 # less than ε about an axis farther out moves its part along an arc of radius far beyond the
@@ -127,7 +131,7 @@ def classify_joints(
     motion: PartMotion,
     eps_deg: float = 10.0,
     score: Callable[[PartMotion], float] | None = None,
-    init_motions: Sequence[Sequence[Motion]] | None = None,
+    init_motions: Sequence[Sequence[RigidMotion]] | None = None,
     small_hinge_margin: float = 0.0,
     hinge_reach: tuple[np.ndarray, float] | None = None,
     parts: Sequence[int] | None = None,
