@@ -132,6 +132,21 @@ def test_merge_at_classification_then_dropped_from_the_outputs():
     assert dropped == [2] and motion.num_parts == 2 and g.num_parts == 2
 
 
+def test_halves_of_a_stacked_cut_join_only_at_the_end():
+    """Two halves stage 2 cut from one part tall along its hinge are kept apart at the
+    joint-type decision (each may still hold a slice of the other door) and join at the end
+    when one motion explains both."""
+    s = door_in_halves(34.0)
+    s.halves = [(1, 2)]
+    s.config.joint_classify_iteration = 2
+    s.step(2)
+    event = next(e for e in s.events if e.get("event") == "part_merge")
+    assert event["merges"] == [] and s.live_parts() == [1, 2]
+    s = door_in_halves(34.0)
+    assert merge_parts(s, apart=[(2, 1)]) == [] and s.live_parts() == [1, 2]
+    assert [(m.part, m.into) for m in merge_parts(s)] == [(2, 1)]
+
+
 def test_parts_read_twice_merge_again_at_the_end_of_stage3(tmp_path):
     """A fragment whose motion reaches its part's only after the joint-type decision (here
     never reached) still joins it: stage 3 merges once more before its result."""
@@ -144,7 +159,8 @@ def test_parts_read_twice_merge_again_at_the_end_of_stage3(tmp_path):
                                     joint_classify_iteration=10))
     logits = g["logits"].detach().clone()
     model = Gaussians({k: v.detach() for k, v in g.params.items() if k != "logits"})
-    coarse = Stage2Result("start", 3, logits, [[m] for m in truth], 0.1)
+    # as if stage 2 had cut one part in halves: they may join at the end
+    coarse = Stage2Result("start", 3, logits, [[m] for m in truth], 0.1, halves=[(1, 2)])
     runner = Runner(tmp_path, cfg, quiet=True)
     try:
         result = refine_parts({"start": model}, coarse, views, cfg, runner, None)

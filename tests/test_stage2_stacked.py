@@ -54,8 +54,9 @@ def test_split_stacked_seeds_the_new_part_and_keeps_the_rest():
     logits = seed_logits(part_of, 3)
     slide = (np.eye(3), np.array([0.0, -0.3, 0.0]))
     candidates = [[turn(35.0), slide], [slide]]
-    out, out_candidates, notes = split_stacked(logits, candidates, means)
+    out, out_candidates, halves, notes = split_stacked(logits, candidates, means)
     assert out.shape == (len(means), 4) and np.isfinite(out).all()
+    assert halves == [(1, 3)]
     assert len(notes) == 1 and "part 1" in notes[0]
     assert len(out_candidates) == 3 and out_candidates[2] == candidates[0]
     owner = out.argmax(axis=1)
@@ -71,5 +72,5 @@ def test_split_stacked_seeds_the_new_part_and_keeps_the_rest():
 
 def test_split_stacked_without_candidates_changes_nothing():
     logits = seed_logits(np.zeros(10, dtype=np.int64), 1)
-    out, candidates, notes = split_stacked(logits, [], np.zeros((10, 3)))
-    assert np.array_equal(out, logits) and candidates == [] and notes == []
+    out, candidates, halves, notes = split_stacked(logits, [], np.zeros((10, 3)))
+    assert np.array_equal(out, logits) and candidates == [] and halves == [] and notes == []

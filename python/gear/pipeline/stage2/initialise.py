@@ -30,7 +30,8 @@ STAGE2_MIN_OPAQUE_FRACTION = 0.5
 class Stage2Result:
     """Canonical state, part count K, part logits of every canonical Gaussian [N, K] and, per
     movable part, its motion candidates (the initial motion first, then near-ties of the other
-    joint kind, for stage 3's joint-type decision); the voxel size used and notes."""
+    joint kind, for stage 3's joint-type decision); the voxel size used, the pairs of parts
+    that are halves of one part tall along its hinge (stacked.split_stacked) and notes."""
 
     canonical: str
     num_parts: int
@@ -38,6 +39,7 @@ class Stage2Result:
     candidates: list[list[RigidMotion]]
     voxel_size: float
     notes: list[str] = field(default_factory=list)
+    halves: list[tuple[int, int]] = field(default_factory=list)
 
     @property
     def target(self) -> str:
@@ -101,9 +103,9 @@ def initialise_parts(models: dict[str, Gaussians], views: dict[str, list[TrainVi
     canonical = init.canonical
     logits = spread_logits(centres[canonical], keep[canonical],
                            np.asarray(init.logits, dtype=np.float32))
-    candidates, notes = init.candidates, list(init.notes)
+    candidates, notes, halves = init.candidates, list(init.notes), []
     if c.split_stacked_hinges and c.num_parts is None and c.merge_redundant_parts:
-        logits, candidates, cuts = split_stacked(logits, candidates, centres[canonical])
+        logits, candidates, halves, cuts = split_stacked(logits, candidates, centres[canonical])
         notes += cuts
     result = Stage2Result(
         canonical=canonical,
@@ -113,6 +115,7 @@ def initialise_parts(models: dict[str, Gaussians], views: dict[str, list[TrainVi
                     for part in candidates],
         voxel_size=init.voxel_size,
         notes=notes,
+        halves=halves,
     )
     runner.timings["stage2"] = time.perf_counter() - t0
     for state in STATES:

@@ -55,18 +55,18 @@ def stacked_cut(means: np.ndarray, motion: RigidMotion) -> np.ndarray | None:
 
 def split_stacked(
     logits: np.ndarray, candidates: list[list[RigidMotion]], means: np.ndarray
-) -> tuple[np.ndarray, list[list[RigidMotion]], list[str]]:
+) -> tuple[np.ndarray, list[list[RigidMotion]], list[tuple[int, int]], list[str]]:
     """Part logits [N, K] and per-movable-part motion candidates with every candidate for two
     stacked doors (stacked_cut of the canonical centres `means` [N, 3] whose largest logit is
     its) cut in two: the half beyond the median becomes a new part, last, with the same
     candidates. Everyone's logit of the new part is a copy of the cut part's, but for the
     halves: the moved half keeps the cut part's (seeded) logit for the new part and takes its
-    lowest logit for the cut part, the other half its lowest for the new part. Returns them
-    and a note per cut."""
+    lowest logit for the cut part, the other half its lowest for the new part. Returns them,
+    the pairs of halves (cut part, new part) and a note per cut."""
     owner = logits.argmax(axis=1)
     out = logits.copy()
     out_candidates = list(candidates)
-    notes = []
+    halves, notes = [], []
     for part, motions in enumerate(candidates, start=1):
         members = np.flatnonzero(owner == part)
         beyond = stacked_cut(means[members], motions[0])
@@ -78,7 +78,8 @@ def split_stacked(
         out[moved, part] = logits[moved].min(axis=1)
         out = np.concatenate([out, column[:, None]], axis=1)
         out_candidates.append(list(motions))
+        halves.append((part, len(out_candidates)))
         notes.append(f"part {part}: tall along its hinge: one half ({len(moved)} "
                      f"Gaussians) is part {len(out_candidates)} until stage 3's images "
                      "join them")
-    return out, out_candidates, notes
+    return out, out_candidates, halves, notes

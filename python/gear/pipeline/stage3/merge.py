@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -47,20 +48,22 @@ class Merge:
         return {"part": self.part, "into": self.into, "gain": self.gain, "cost": self.cost}
 
 
-def merge_parts(state: RefineState) -> list[Merge]:
+def merge_parts(state: RefineState, apart: Sequence[tuple[int, int]] = ()) -> list[Merge]:
     """Merges, one at a time and smallest part first, every movable part of `state` that
     another part's motion (or the identity) explains within MERGE_SHARE of what its own
-    explains, and that lies in line with that part when it slides. A merged part keeps its
-    column of logits and its motion (set to the other part's) but no Gaussian: the run's
-    outputs drop it. Returns the merges in the order made."""
+    explains, and that lies in line with that part when it slides; no part joins its partner
+    in a pair of `apart`. A merged part keeps its column of logits and its motion (set to the
+    other part's) but no Gaussian: the run's outputs drop it. Returns the merges in the order
+    made."""
+    kept_apart = {frozenset(pair) for pair in apart}
     merges = []
-    while (merge := _next_merge(state)) is not None:
+    while (merge := _next_merge(state, kept_apart)) is not None:
         _apply(state, merge)
         merges.append(merge)
     return merges
 
 
-def _next_merge(state: RefineState) -> Merge | None:
+def _next_merge(state: RefineState, kept_apart: set[frozenset[int]]) -> Merge | None:
     ids = state.gaussians.part_ids()
     counts = torch.bincount(ids, minlength=state.motion.num_parts).tolist()
     live = state.live_parts()
@@ -72,6 +75,8 @@ def _next_merge(state: RefineState) -> Merge | None:
         for into in sorted(costs, key=lambda j: (costs[j], j)):
             if costs[into] > MERGE_SHARE * max(gain, 0.0):
                 break
+            if frozenset((k, into)) in kept_apart:
+                continue
             if into == 0 or _in_line(state, ids, k, into):
                 return Merge(k, into, gain, costs[into])
     return None

@@ -87,7 +87,8 @@ def held_key(g: Gaussians) -> tuple:
 class RefineState(Stage):
     """Stage 3's state: canonical Gaussians + part logits + per-part motion, the frozen
     stage-1 model of the canonical state (None unless the anchor is "frozen"), and the views
-    of both states."""
+    of both states. `halves`: pairs of parts that stage 2 cut from one part tall along its hinge
+    (stage2.stacked), kept apart until the end of stage 3."""
 
     name = "stage3"
 
@@ -102,11 +103,13 @@ class RefineState(Stage):
         seed: int,
         init_motions: Sequence = (),  # stage-2 candidates per movable part (joint_types)
         canonical: str = "start",
+        halves: Sequence[tuple[int, int]] = (),
     ) -> None:
         super().__init__(config, seed)
         self.gaussians, self.motion, self.frozen = gaussians, motion, frozen
         self.init_motions = list(init_motions)
         self.canonical = canonical
+        self.halves = [tuple(pair) for pair in halves]
         self.canonical_views = list(canonical_views)
         self.region_views = [v for v in self.canonical_views if v.regions is not None]
         self.target_views = list(target_views)
