@@ -120,6 +120,50 @@ def test_a_part_its_own_motion_does_not_explain_joins_the_static_part():
     assert s.live_parts() == [1]
 
 
+def scored_by_table(monkeypatch, s: Refine, table: dict[tuple[int, int], float]) -> None:
+    """Make merge's image loss a table: the sum over parts k moved by part j's motion (j = 0:
+    staying put, j = k: its own) of table[k, j], 0 where absent, so that gains and costs are
+    set exactly rather than rendered."""
+    qr, qd = (x.detach().clone() for x in s.motion.motion())
+    own = [(qr[j], qd[j]) for j in range(s.motion.num_parts)]
+
+    def loss(state, motion):
+        mr, md = motion.motion()
+        total = 0.0
+        for k in range(1, motion.num_parts):
+            j = next(j for j, (r, d) in enumerate(own)
+                     if torch.allclose(mr[k], r, atol=1e-6) and torch.allclose(md[k], d, atol=1e-6))
+            total += table.get((k, j), 0.0)
+        return total
+
+    monkeypatch.setattr(merge, "image_loss", loss)
+
+
+@pytest.mark.parametrize("gain, cost_like_door, into", [
+    (0.02, 0.5, 0),    # not seen to move, the door's turn explains it worse: static
+    (0.02, 0.01, 1),   # not seen to move, the door's turn explains it better: the door
+    (0.04, 0.5, None),  # seen to move (4 % of the door's gain): a part of its own
+])
+def test_a_part_whose_motion_is_not_seen_joins_the_part_that_explains_it(
+        monkeypatch, gain, cost_like_door, into):
+    """A part whose own motion gains at most UNSEEN_GAIN_SHARE of the largest gain (a strip
+    hidden inside a cabinet, turned onto itself) is not seen to move: it joins whichever
+    explains it no worse than staying put, though that costs more than MERGE_SHARE of it."""
+    blocks = [(wall(), 0), (plank(-0.3, 0.0), 1), (plank(0.15, 0.3, z=-0.2, columns=2), 2)]
+    truth = [hinge(40), (np.eye(3), np.array([0.05, 0.0, 0.0]))]
+    s = stage(blocks, truth, truth)
+    assert merge.UNSEEN_GAIN_SHARE == 0.03
+    scored_by_table(monkeypatch, s, {(1, 0): 1.0, (1, 2): 0.8, (2, 0): gain,
+                                     (2, 1): cost_like_door})
+    merges = merge_parts(s)
+    if into is None:
+        assert merges == [] and s.live_parts() == [1, 2]
+    else:
+        assert [(m.part, m.into) for m in merges] == [(2, into)]
+        assert merges[0].gain == pytest.approx(gain)
+        assert merges[0].cost > merge.MERGE_SHARE * merges[0].gain
+
+
 def test_merge_at_classification_then_dropped_from_the_outputs():
     s = door_in_halves(34.0)
     s.config.joint_classify_iteration = 2  # an M-step iteration (em_interval 2)
