@@ -6,7 +6,7 @@ model's noise, the stacked doors by 4-9 (docs/method.md, "Doors stacked on one h
 So a hinged part at least STACK_ASPECT times taller along its axis than wide is handed to
 stage 3 as two parts, cut across the axis at the median of its centres, with the same motion:
 stage 3's images then fit each half's motion, and its merge of parts read twice
-(stage3.merge) joins the halves again when one motion explains both."""
+(stage3.merge) joins the halves again at its end when one motion explains both."""
 
 from __future__ import annotations
 
