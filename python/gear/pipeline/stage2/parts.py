@@ -14,6 +14,7 @@ from gear import geometry
 from gear.articulation import RigidMotion
 from gear.pipeline.stage2.hypotheses import DETECT_OVERLAP, IDENTITY, Hypothesis, fit_plane
 from gear.pipeline.stage2.regions import AGREE_VOXELS, MERGE_COST, extra_residual, motion_regions
+from gear.pipeline.stage2.seen_through import claim_seen_through
 from gear.pipeline.stage2.voxels import (
     MAX_TARGET_CANDIDATES,
     MIN_PART_VOXELS,
@@ -531,5 +532,12 @@ def coarse_init(
         candidates.append([(np.eye(3), np.zeros(3))])
         notes.append(f"part {index}: no dynamic component left; identity init, no seeded logits")
     motions = [c[0] for c in candidates]
+    if surfaces is not None:
+        part_of_point, claimed = claim_seen_through(
+            canon, part_of_point, motions, surfaces["end" if canonical == "start" else "start"],
+            SURFACE_TOLERANCE_VOXELS * size)
+        if claimed:
+            notes.append(f"{claimed} static Gaussians the target images see through joined "
+                         "the part whose motion puts them on its surface")
     logits = seed_logits(part_of_point, k)
     return CoarseInit(canonical, k, logits, motions, size, notes, candidates)
