@@ -1,4 +1,4 @@
-"""Static points the target images contradict (docs/method.md, "Stage 2", step 7): a canonical
+"""Static points the target images contradict (docs/method.md, "Stage 2", step 5): a canonical
 point that stage 2 leaves static must be where the target state has matter, since the static
 part does not move. Where the target images see through it instead, and a part's motion puts
 it on the target's surface, it belongs to that part.
