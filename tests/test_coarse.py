@@ -15,6 +15,7 @@ from gear.pipeline.stage2.hypotheses import (
 )
 from gear.pipeline.stage2.parts import coarse_init
 from gear.pipeline.stage2.voxels import split_static_dynamic
+from stage2_surfaces import OneView
 
 FRONT = 2  # face id (axis * 2 + side) of the y = min face: cabinets are open at the front
 
@@ -316,7 +317,7 @@ def test_matter_only_the_open_state_shows_is_not_a_part():
             inside = np.all((points > 0.0) & (points < [1.0, 1.0, 1.2]), axis=1)
             return on, ~on & ~inside  # inside the closed cabinet nothing is seen through
 
-        return at
+        return OneView(at)
 
     without = coarse_init(start, end)
     result = coarse_init(start, end, surfaces={"start": look("start")})

@@ -12,6 +12,7 @@ from gear.pipeline.stage2 import initialise as stage2
 from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY, stage2_selection
 from gear.pipeline.stage2.parts import coarse_init
 from gear.splats import Gaussians
+from stage2_surfaces import OneView
 from test_coarse import FRAMES, door_scene
 
 FLOATERS = 300  # per state: a haze cluster in front of the cabinet, elsewhere in each state
@@ -49,7 +50,7 @@ def hazy_door_scene():
 
 def sees_everything(model, views):
     """A surface test that passes every point: the part count rests on the voxel tests."""
-    return lambda pts, tol: (np.ones(len(pts), bool), np.ones(len(pts), bool))
+    return OneView(lambda pts, tol: (np.ones(len(pts), bool), np.ones(len(pts), bool)))
 
 
 def stage2_runner(tmp_path) -> Runner:

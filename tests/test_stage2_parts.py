@@ -11,6 +11,7 @@ from gear.pipeline.stage2 import voxels
 from gear.pipeline.stage2.hypotheses import edge_hinges, fit_plane, rod_hinges
 from gear.pipeline.stage2.parts import _moves_along, coarse_init
 from gear.pipeline.stage2.voxels import Scale, split_static_dynamic
+from stage2_surfaces import OneView
 from test_coarse import FRONT, box_surface, hinge_motion, line_distance
 
 
@@ -48,7 +49,7 @@ def surfaces_of(points):
         on = tree.query(query)[0] < tolerance
         return on, ~on
 
-    return look
+    return OneView(look)
 
 
 def coarse_init_seen(start, end, **kwargs):

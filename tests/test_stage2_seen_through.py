@@ -9,17 +9,23 @@ import numpy as np
 from gear.pipeline.stage2.seen_through import claim_seen_through
 
 TOLERANCE = 0.02
+VOXEL = 0.05
 PULL = 0.4
 PUSH = (np.eye(3), np.array([0.0, PULL, 0.0]))  # canonical (pulled out) -> target (closed)
 
 
 def closed_look(points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-    """The closed state's images: the cabinet's front plane at y = 0 over x, z in [0, 1]. On it:
-    on the surface; in front of it or beside the cabinet: seen through; behind it: hidden."""
+    """The closed state's images, as one view's votes: the cabinet's front plane at y = 0 over
+    x, z in [0, 1]. On it: on the surface; in front of it or beside the cabinet: seen through;
+    behind it: hidden (neither)."""
     inside = np.all((points[:, [0, 2]] >= 0) & (points[:, [0, 2]] <= 1), axis=1)
     on = inside & (np.abs(points[:, 1]) < tolerance)
     free = ~inside | (points[:, 1] < -tolerance)
-    return on, free
+    return on.astype(np.int64), free.astype(np.int64)
+
+
+def claim(points, labels, motions, votes=closed_look):
+    return claim_seen_through(points, labels, motions, votes, TOLERANCE, VOXEL)
 
 
 def front(x0: float, x1: float, y: float, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -36,7 +42,7 @@ def test_a_pulled_drawers_front_left_static_joins_the_drawer():
                               rng.uniform(0.1, 0.5, 50)])  # inside the cabinet: never seen
     points = np.concatenate([drawer, stray, body, hidden])
     labels = np.concatenate([np.ones(200, int), np.zeros(150 + 300 + 50, int)])
-    out, claimed = claim_seen_through(points, labels, [PUSH], closed_look, TOLERANCE)
+    out, claimed = claim(points, labels, [PUSH])
     assert claimed == 150
     np.testing.assert_array_equal(out[:350], 1)
     # Matter the target shows where it is, or hides, stays static.
@@ -50,7 +56,7 @@ def test_a_seen_through_point_no_motion_lands_stays_static():
     floater = np.array([[0.5, -0.2, 0.3], [2.0, -0.4, 0.3]])  # pushed: behind the front / beside
     points = np.concatenate([drawer, floater])
     labels = np.concatenate([np.ones(200, int), np.zeros(2, int)])
-    out, claimed = claim_seen_through(points, labels, [PUSH], closed_look, TOLERANCE)
+    out, claimed = claim(points, labels, [PUSH])
     assert claimed == 0
     np.testing.assert_array_equal(out, labels)
 
@@ -62,7 +68,7 @@ def test_a_stray_that_two_parts_land_joins_the_nearest():
     strays = np.array([[0.35, -PULL, 0.3], [0.65, -PULL, 0.3]])
     points = np.concatenate([left, right, strays])
     labels = np.concatenate([np.ones(100, int), np.full(100, 2), np.zeros(2, int)])
-    out, claimed = claim_seen_through(points, labels, [PUSH, PUSH], closed_look, TOLERANCE)
+    out, claimed = claim(points, labels, [PUSH, PUSH])
     assert claimed == 2
     assert out[-2] == 1 and out[-1] == 2
 
@@ -72,7 +78,36 @@ def test_movable_points_and_a_scene_without_parts_are_left_alone():
     drawer = front(0.1, 0.9, -PULL, 100, rng)
     # A part whose own motion the images contradict keeps its label: only static is claimed.
     astray = (np.eye(3), np.array([0.0, -0.3, 0.0]))
-    out, claimed = claim_seen_through(drawer, np.ones(100, int), [astray], closed_look, TOLERANCE)
+    out, claimed = claim(drawer, np.ones(100, int), [astray])
     assert claimed == 0 and (out == 1).all()
-    out, claimed = claim_seen_through(drawer, np.zeros(100, int), [], closed_look, TOLERANCE)
+    out, claimed = claim(drawer, np.zeros(100, int), [])
     assert claimed == 0 and (out == 0).all()
+
+
+def test_a_stray_landed_by_chance_away_from_the_part_stays_static():
+    rng = np.random.default_rng(4)
+    drawer = front(0.1, 0.3, -PULL, 200, rng)
+    stray = np.array([[0.8, -PULL, 0.9]])  # seen through, pushed onto the front: but detached
+    points = np.concatenate([drawer, stray])
+    labels = np.concatenate([np.ones(200, int), np.zeros(1, int)])
+    out, claimed = claim(points, labels, [PUSH])
+    assert claimed == 0 and out[-1] == 0
+
+
+def test_a_point_more_views_show_than_see_through_stays_static():
+    rng = np.random.default_rng(5)
+    drawer = front(0.1, 0.5, -PULL, 200, rng)
+    stray = front(0.5, 0.9, -PULL, 50, rng)
+    points = np.concatenate([drawer, stray])
+    labels = np.concatenate([np.ones(200, int), np.zeros(50, int)])
+
+    def split_vote(pts, tolerance):
+        """Three views: one sees through the strays where they are, two show them there."""
+        on, through = closed_look(pts, tolerance)
+        where_strays = pts[:, 1] < -tolerance
+        return on + 2 * where_strays, through
+
+    out, claimed = claim(points, labels, [PUSH], split_vote)
+    assert claimed == 0 and (out[200:] == 0).all()
+    out, claimed = claim(points, labels, [PUSH])
+    assert claimed == 50

@@ -533,9 +533,10 @@ def coarse_init(
         notes.append(f"part {index}: no dynamic component left; identity init, no seeded logits")
     motions = [c[0] for c in candidates]
     if surfaces is not None:
+        target_surface = surfaces["end" if canonical == "start" else "start"]
         part_of_point, claimed = claim_seen_through(
-            canon, part_of_point, motions, surfaces["end" if canonical == "start" else "start"],
-            SURFACE_TOLERANCE_VOXELS * size)
+            canon, part_of_point, motions, target_surface.votes,
+            SURFACE_TOLERANCE_VOXELS * size, size)
         if claimed:
             notes.append(f"{claimed} static Gaussians the target images see through joined "
                          "the part whose motion puts them on its surface")

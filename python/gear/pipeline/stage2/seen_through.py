@@ -1,40 +1,49 @@
 """Static points the target images contradict (docs/method.md, "Stage 2", step 5): a canonical
 point that stage 2 leaves static must be where the target state has matter, since the static
 part does not move. Where the target images see through it instead, and a part's motion puts
-it on the target's surface, it belongs to that part.
+it on the target's surface, attached to that part, it belongs to that part.
 
 Such points are the pieces of a part that stage 2 found no place for: dynamic components under
-the size floors, or cut off a door by its own motion's landing test. Left static-leaning, the
-E-step settles most of them as static: on a real sink cabinet at the fast profile, 42 % of one
-door's opaque Gaussians ended static, and the half of them that stayed where the open door had
-been showed in every target view as a panel sticking out of the closed cabinet."""
+the size floors, or cells cut off a door by its own motion's landing test. Left static-leaning,
+the E-step settles most of them as static: on a real sink cabinet at the fast profile, 42 % of
+one door's opaque Gaussians ended static, and the half of them that stayed where the open door
+had been showed in every target view as a panel sticking out of the closed cabinet."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from gear import geometry
 from gear.articulation import RigidMotion
-from gear.pipeline.stage2.voxels import SurfaceTest
+
+# `votes(points [M, 3], tolerance) -> (on [M], through [M])`: in how many of the target's
+# views each point lies on the surface shown, and in how many the view sees through it
+# (stage2.surface.SurfaceTest.votes).
+Votes = Callable[[np.ndarray, float], tuple[np.ndarray, np.ndarray]]
 
 
 def claim_seen_through(
     points: np.ndarray, part_of_point: np.ndarray, motions: Sequence[RigidMotion],
-    surface: SurfaceTest, tolerance: float,
+    votes: Votes, tolerance: float, voxel_size: float,
 ) -> tuple[np.ndarray, int]:
     """`part_of_point` [N] (0 = static, k = movable part k, whose motion is `motions[k - 1]`)
-    with every static point of `points` [N, 3] that `surface` sees through (within
-    `tolerance`) given to a part whose motion lands it on the surface and not seen through;
-    to the part with the nearest point when several do. Returns the labels and how many
-    points changed part."""
+    with the static points of `points` [N, 3] that more target views see through than show on
+    the surface given to a part whose motion puts them where more views show them on the
+    surface than see through them (the part with the nearest point when several do), if they
+    are attached to that part: in a 26-connected piece, on the grid of `voxel_size` grown by one
+    cell, holding some of its points. Returns the labels and how many points changed part.
+
+    Both counts are majorities, not single views: one view seeing past a thin static edge, or a
+    turn that happens to put a stray on some surface, is not enough; and attachment keeps a
+    part from picking up a stray that its motion lands by chance across the object."""
     labels = np.asarray(part_of_point).copy()
     static = np.flatnonzero(labels == 0)
     if len(static) == 0 or not motions:
         return labels, 0
-    _, seen_through = surface(points[static], tolerance)
-    static = static[seen_through]
+    on, through = votes(points[static], tolerance)
+    static = static[through > on]
     if len(static) == 0:
         return labels, 0
     stray = points[static]
@@ -44,9 +53,23 @@ def claim_seen_through(
         body = points[labels == k]
         if len(body) == 0:
             continue
-        on, through = surface(stray @ np.asarray(rot).T + np.asarray(trans), tolerance)
+        on, through = votes(stray @ np.asarray(rot).T + np.asarray(trans), tolerance)
         distance = geometry.knn(body, 1, stray)[1][:, 0]
-        better = on & ~through & (distance < nearest)
+        better = (on > through) & (distance < nearest)
         best[better], nearest[better] = k, distance[better]
+    for k in np.unique(best[best > 0]):
+        mine = np.flatnonzero(best == k)
+        best[mine[~_attached(points[labels == k], stray[mine], voxel_size)]] = 0
     labels[static] = best
     return labels, int(np.count_nonzero(best))
+
+
+def _attached(body: np.ndarray, strays: np.ndarray, voxel_size: float) -> np.ndarray:
+    """Which of `strays` lie in a 26-connected piece of the cells of `body` and `strays`
+    (grown by one cell) that holds a cell of `body`."""
+    grid = geometry.voxel_grid([body, strays], voxel_size)
+    cells = geometry.dilate(grid.occupancy[0] | grid.occupancy[1], 1)
+    pieces, _ = geometry.components(cells, connectivity=26)
+    sparse = None if pieces.ndim == 3 else cells
+    held = np.unique(grid.point_labels(body, pieces, sparse))
+    return np.isin(grid.point_labels(strays, pieces, sparse), held[held > 0])

@@ -16,9 +16,9 @@ class SurfaceTest:
     """`test(points [M,3], tolerance) -> (on_surface [M], free [M])` over up to `max_views`
     of `views` rendered from `model`: whether each point lies, within `tolerance` in depth, on
     the surface shown (alpha > 0.5) in some view, and whether some view sees through it
-    (outside the silhouette, or in front of the surface by more than `tolerance`). The renders
-    are made on first use: stage 2 asks only the target state's test, and only when it
-    estimates K."""
+    (outside the silhouette, or in front of the surface by more than `tolerance`); `votes`
+    counts the views of each. The renders are made on first use: stage 2 asks only the target
+    state's test."""
 
     def __init__(self, model: Gaussians, views: Sequence[TrainView], max_views: int = 8) -> None:
         self.model, self.views, self.max_views = model, list(views), max_views
@@ -35,9 +35,11 @@ class SurfaceTest:
                     self._seen.append((view.camera, alpha > 0.5, depth))
         return self._seen
 
-    def __call__(self, points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-        hit = np.zeros(len(points), dtype=bool)
-        free = np.zeros(len(points), dtype=bool)
+    def votes(self, points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        """(on [M], through [M]): in how many of the views each point lies on the surface
+        shown, within `tolerance` in depth, and in how many that view sees through it."""
+        on = np.zeros(len(points), dtype=np.int64)
+        through = np.zeros(len(points), dtype=np.int64)
         for camera, solid, depth in self._renders():
             uv, z = camera.project(points)
             ok = np.isfinite(uv).all(axis=1) & (z > 0)
@@ -47,6 +49,10 @@ class SurfaceTest:
             idx = np.flatnonzero(ok)
             uu, vv = u[idx], v[idx]
             gap = z[idx] - depth[vv, uu]
-            hit[idx[solid[vv, uu] & (np.abs(gap) < tolerance)]] = True
-            free[idx[~solid[vv, uu] | (gap < -tolerance)]] = True
-        return hit, free
+            on[idx[solid[vv, uu] & (np.abs(gap) < tolerance)]] += 1
+            through[idx[~solid[vv, uu] | (gap < -tolerance)]] += 1
+        return on, through
+
+    def __call__(self, points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        on, through = self.votes(points, tolerance)
+        return on > 0, through > 0

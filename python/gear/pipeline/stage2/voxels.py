@@ -4,8 +4,8 @@ that grid (docs/method.md, "Stage 2")."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Protocol
 
 import numpy as np
 from scipy.ndimage import maximum_filter
@@ -66,9 +66,16 @@ MAX_DENSE_CELLS = 1 << 26
 SPACING_SAMPLES = 20000
 
 
-# `test(points [M, 3], tolerance) -> (on_surface [M], seen_through [M])`: what a state's images
-# see at each point (stage2.surface.SurfaceTest).
-SurfaceTest = Callable[[np.ndarray, float], tuple[np.ndarray, np.ndarray]]
+class SurfaceTest(Protocol):
+    """What a state's images see at each point (stage2.surface.SurfaceTest):
+    `test(points [M, 3], tolerance) -> (on_surface [M], seen_through [M])` in some view, and
+    `votes` the number of views of each."""
+
+    def __call__(self, points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        ...
+
+    def votes(self, points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        ...
 
 
 @dataclass
