@@ -23,6 +23,12 @@ from gear.pipeline.stage3.shared import RefineState
 # A part merges when another motion costs it at most this share of what its own motion gains
 # over staying put (both in the image loss of the target views).
 MERGE_SHARE = 0.1
+# Halves of one part that stage 2 cut along its hinge (stage2.stacked) join only when one's
+# motion costs the other at most this share of its gain. Both start from one motion and see the
+# same images, so one door's halves end within noise of each other (cabinet_upper at fast:
+# 0.06 %), while two doors stacked on one hinge line and turned 2.4 and 4.3 degrees apart cost
+# 6.4 % (cabinet_upper's 29.0 / 26.6) and 12 % (the cupboard's 22.6 / 18.3).
+HALVES_MERGE_SHARE = 0.02
 # A part whose own motion gains less than this share of the largest gain of any movable part
 # is not seen to move: it joins whichever part (or the static one) explains it no worse than
 # staying put. Real parts, fast and quick suites: 0.17 of the largest and up; sink_base's
@@ -53,23 +59,29 @@ class Merge:
         return {"part": self.part, "into": self.into, "gain": self.gain, "cost": self.cost}
 
 
-def merge_parts(state: RefineState, apart: Sequence[tuple[int, int]] = ()) -> list[Merge]:
+def merge_parts(state: RefineState, apart: Sequence[tuple[int, int]] = (),
+                halves: Sequence[tuple[int, int]] = ()) -> list[Merge]:
     """Merges, one at a time and smallest part first, every movable part of `state` that
     another part's motion (or the identity) explains within MERGE_SHARE of what its own
-    explains, and that lies in line with that part when it slides; no part joins its partner
-    in a pair of `apart`. A part whose own motion gains at most UNSEEN_GAIN_SHARE of the
-    largest gain joins the part that explains it best, so long as no worse than staying put.
-    A merged part keeps its column of logits and its motion (set to the other part's) but no
-    Gaussian: the run's outputs drop it. Returns the merges in the order made."""
+    explains (HALVES_MERGE_SHARE for the two parts of a pair of `halves`), and that lies in
+    line with that part when it slides; no part joins its partner in a pair of `apart`. A part
+    whose own motion gains at most UNSEEN_GAIN_SHARE of the largest gain joins the part that
+    explains it best, so long as no worse than staying put. A merged part keeps its column of
+    logits and its motion (set to the other part's) but no Gaussian: the run's outputs drop
+    it. Returns the merges in the order made."""
     kept_apart = {frozenset(pair) for pair in apart}
+    shares = {frozenset(pair): HALVES_MERGE_SHARE for pair in halves}
     merges = []
-    while (merge := _next_merge(state, kept_apart)) is not None:
+    while (merge := _next_merge(state, kept_apart, shares)) is not None:
         _apply(state, merge)
         merges.append(merge)
     return merges
 
 
-def _next_merge(state: RefineState, kept_apart: set[frozenset[int]]) -> Merge | None:
+def _next_merge(state: RefineState, kept_apart: set[frozenset[int]],
+                shares: dict[frozenset[int], float]) -> Merge | None:
+    """The first merge merge_parts makes on `state` as it is, or None; `shares`: the merge
+    share of the pairs that do not use MERGE_SHARE."""
     ids = state.gaussians.part_ids()
     counts = torch.bincount(ids, minlength=state.motion.num_parts).tolist()
     live = state.live_parts()
@@ -80,11 +92,11 @@ def _next_merge(state: RefineState, kept_apart: set[frozenset[int]]) -> Merge | 
         gain = gains[k]
         costs = {0: gain} | {j: image_loss(state, moved_like(state.motion, k, j)) - base
                              for j in live if j != k}
-        allowed = max(MERGE_SHARE * max(gain, 0.0), gain if gain <= unseen else -math.inf)
         for into in sorted(costs, key=lambda j: (costs[j], j)):
-            if costs[into] > allowed:
-                break
-            if frozenset((k, into)) in kept_apart:
+            pair = frozenset((k, into))
+            share = shares.get(pair, MERGE_SHARE)
+            allowed = max(share * max(gain, 0.0), gain if gain <= unseen else -math.inf)
+            if costs[into] > allowed or pair in kept_apart:
                 continue
             if into == 0 or _in_line(state, ids, k, into):
                 return Merge(k, into, gain, costs[into])

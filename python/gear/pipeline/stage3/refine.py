@@ -69,11 +69,12 @@ class Refine(RefineState):
         self.maintain(it)
         return terms
 
-    def merge_parts_read_twice(self, apart: Sequence[tuple[int, int]] = ()) -> None:
-        """merge.merge_parts (no pair of `apart` joined), when the config asks for it,
-        recorded as an event."""
+    def merge_parts_read_twice(self, apart: Sequence[tuple[int, int]] = (),
+                               halves: Sequence[tuple[int, int]] = ()) -> None:
+        """merge.merge_parts (no pair of `apart` joined, the pairs of `halves` held to their
+        tighter share), when the config asks for it, recorded as an event."""
         if self.config.merge_redundant_parts:
-            merged = merge_parts(self, apart)
+            merged = merge_parts(self, apart, halves)
             self.events.append({"event": "part_merge", "merges": [m.record() for m in merged]})
 
     def untwist_rods(self) -> None:
@@ -172,7 +173,7 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
     # joint-type decision (a scissors blade's tip, given a turn of 8 degrees by an older
     # stage 2, ended within 1 degree of the blade's 34 and stayed a part).
     started = time.perf_counter()
-    stage.merge_parts_read_twice()
+    stage.merge_parts_read_twice(halves=stage.halves)
     stage.untwist_rods()
     runner.write_events(stage, when="end")
     runner.timed(stage.name, time.perf_counter() - started)
