@@ -11,7 +11,8 @@ Look = Callable[[np.ndarray, float], tuple[np.ndarray, np.ndarray]]
 
 class OneView:
     """A surface test from a yes/no `look(points, tolerance) -> (on_surface, seen_through)`,
-    counted as one view seeing everything: each answer is one vote."""
+    counted as one view seeing everything: each answer is one vote (a `look` that counts
+    views instead gives its counts as the votes)."""
 
     def __init__(self, look: Look) -> None:
         self.look = look

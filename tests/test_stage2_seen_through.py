@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from gear.pipeline.stage2.seen_through import claim_seen_through
+from stage2_surfaces import OneView
 
 TOLERANCE = 0.02
 VOXEL = 0.05
@@ -24,8 +25,8 @@ def closed_look(points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.nd
     return on.astype(np.int64), free.astype(np.int64)
 
 
-def claim(points, labels, motions, votes=closed_look):
-    return claim_seen_through(points, labels, motions, votes, TOLERANCE, VOXEL)
+def claim(points, labels, motions, look=closed_look):
+    return claim_seen_through(points, labels, motions, OneView(look), TOLERANCE, VOXEL)
 
 
 def front(x0: float, x1: float, y: float, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -480,9 +480,9 @@ def coarse_init(
     canonical, note = choose_canonical(start, end)
     canon, target = (start, end) if canonical == "start" else (end, start)
     notes = [note]
-    on_surface = None
-    if surfaces is not None and num_parts is None:
-        on_surface = surfaces["end" if canonical == "start" else "start"]
+    target_surface = None if surfaces is None else surfaces[
+        "end" if canonical == "start" else "start"]
+    on_surface = target_surface if num_parts is None else None
     radius = dilation_radius
     if voxel_size is not None:
         size = float(voxel_size)
@@ -532,11 +532,9 @@ def coarse_init(
         candidates.append([(np.eye(3), np.zeros(3))])
         notes.append(f"part {index}: no dynamic component left; identity init, no seeded logits")
     motions = [c[0] for c in candidates]
-    if surfaces is not None:
-        target_surface = surfaces["end" if canonical == "start" else "start"]
+    if target_surface is not None:
         part_of_point, claimed = claim_seen_through(
-            canon, part_of_point, motions, target_surface.votes,
-            SURFACE_TOLERANCE_VOXELS * size, size)
+            canon, part_of_point, motions, target_surface, SURFACE_TOLERANCE_VOXELS * size, size)
         if claimed:
             notes.append(f"{claimed} static Gaussians the target images see through joined "
                          "the part whose motion puts them on its surface")

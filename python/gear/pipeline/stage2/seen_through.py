@@ -11,29 +11,26 @@ had been showed in every target view as a panel sticking out of the closed cabin
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from gear import geometry
 from gear.articulation import RigidMotion
-
-# `votes(points [M, 3], tolerance) -> (on [M], through [M])`: in how many of the target's
-# views each point lies on the surface shown, and in how many the view sees through it
-# (stage2.surface.SurfaceTest.votes).
-Votes = Callable[[np.ndarray, float], tuple[np.ndarray, np.ndarray]]
+from gear.pipeline.stage2.voxels import SurfaceTest
 
 
 def claim_seen_through(
     points: np.ndarray, part_of_point: np.ndarray, motions: Sequence[RigidMotion],
-    votes: Votes, tolerance: float, voxel_size: float,
+    target: SurfaceTest, tolerance: float, voxel_size: float,
 ) -> tuple[np.ndarray, int]:
     """`part_of_point` [N] (0 = static, k = movable part k, whose motion is `motions[k - 1]`)
-    with the static points of `points` [N, 3] that more target views see through than show on
-    the surface given to a part whose motion puts them where more views show them on the
-    surface than see through them (the part with the nearest point when several do), if they
-    are attached to that part: in a 26-connected piece, on the grid of `voxel_size` grown by one
-    cell, holding some of its points. Returns the labels and how many points changed part.
+    with the static points of `points` [N, 3] that more views of the `target` state see
+    through than show on the surface given to a part whose motion puts them where more views
+    show them on the surface than see through them (the part with the nearest point when
+    several do), if they are attached to that part: in a 26-connected piece, on the grid of
+    `voxel_size` grown by one cell, holding some of its points. Returns the labels and how
+    many points changed part.
 
     Both counts are majorities, not single views: one view seeing past a thin static edge, or a
     turn that happens to put a stray on some surface, is not enough; and attachment keeps a
@@ -42,24 +39,24 @@ def claim_seen_through(
     static = np.flatnonzero(labels == 0)
     if len(static) == 0 or not motions:
         return labels, 0
-    on, through = votes(points[static], tolerance)
+    on, through = target.votes(points[static], tolerance)
     static = static[through > on]
     if len(static) == 0:
         return labels, 0
     stray = points[static]
+    bodies = {k: points[labels == k] for k in range(1, len(motions) + 1)}
     best = np.zeros(len(static), dtype=labels.dtype)
     nearest = np.full(len(static), np.inf)
     for k, (rot, trans) in enumerate(motions, start=1):
-        body = points[labels == k]
-        if len(body) == 0:
+        if len(bodies[k]) == 0:
             continue
-        on, through = votes(stray @ np.asarray(rot).T + np.asarray(trans), tolerance)
-        distance = geometry.knn(body, 1, stray)[1][:, 0]
+        on, through = target.votes(stray @ np.asarray(rot).T + np.asarray(trans), tolerance)
+        distance = geometry.knn(bodies[k], 1, stray)[1][:, 0]
         better = (on > through) & (distance < nearest)
         best[better], nearest[better] = k, distance[better]
     for k in np.unique(best[best > 0]):
         mine = np.flatnonzero(best == k)
-        best[mine[~_attached(points[labels == k], stray[mine], voxel_size)]] = 0
+        best[mine[~_attached(bodies[k], stray[mine], voxel_size)]] = 0
     labels[static] = best
     return labels, int(np.count_nonzero(best))
 
