@@ -299,3 +299,16 @@ def test_sparse_grid_beyond_the_dense_bound():
         grid.occupancy[0].to_dense()
     with pytest.raises(ValueError, match="radius: must be at least 0"):
         dilate(grid.occupancy[0], -1)
+
+
+def test_piece_labels_bridge_gaps_under_the_grown_cells():
+    """Cells 3 apart along x (a gap of two empty cells) join once grown by one cell; 4 apart
+    (three empty cells) stay two pieces; labels follow the sets' points in order."""
+    a = np.array([[0.05, 0.05, 0.05], [0.15, 0.05, 0.05]])  # cells 0 and 1
+    near = np.array([[0.45, 0.05, 0.05]])  # cell 4: 3 past a's last cell
+    far = np.array([[0.55, 0.05, 0.05]])  # cell 5: 4 past it
+    of_a, of_near = geometry.piece_labels([a, near], 0.1)
+    assert of_a.tolist() == [1, 1] and of_near.tolist() == [1]
+    of_a, of_far = geometry.piece_labels([a, far], 0.1)
+    assert of_a.tolist() == [1, 1] and of_far.tolist() == [2]
+    assert geometry.piece_labels([a, far], 0.1, grow=2)[1].tolist() == [1]

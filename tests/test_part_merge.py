@@ -178,6 +178,32 @@ def test_a_part_whose_motion_is_not_seen_joins_the_part_that_explains_it(
         assert merges[0].cost > merge.MERGE_SHARE * merges[0].gain
 
 
+# Four pairs of Gaussians (a pair: 0.05 apart along x) at the object's corners, or gathered
+# in one place beside the door.
+SCATTERED = [[-0.55, -0.1, -0.5], [0.5, -0.1, -0.5], [0.5, -0.1, 0.5], [-0.55, -0.1, 0.5]]
+GATHERED = [[0.25, -0.1, 0.15], [0.35, -0.1, 0.15], [0.25, -0.1, 0.25], [0.35, -0.1, 0.25]]
+
+
+@pytest.mark.parametrize("where", ["scattered", "gathered"])
+def test_a_part_that_is_no_body_joins_the_static_part(where):
+    """Four pairs of Gaussians pulled by a motion of their own gain more than the door does;
+    scattered over the object's corners they are not one body: judged as a part not seen to
+    move, they join the static part. Gathered in one place they are a part and stay."""
+    centres = torch.tensor(SCATTERED if where == "scattered" else GATHERED)
+    pairs = torch.cat([centres, centres + torch.tensor([0.05, 0.0, 0.0])])
+    blocks = [(wall(), 0), (plank(-0.3, 0.0, columns=7), 1), (pairs, 2)]
+    truth = [hinge(40), (np.eye(3), PULL)]
+    s = stage(blocks, truth, truth)
+    base = image_loss(s, s.motion)
+    gains = [image_loss(s, moved_like(s.motion, k, 0)) - base for k in (1, 2)]
+    assert gains[1] > gains[0] > 0
+    merges = merge_parts(s)
+    if where == "scattered":
+        assert [(m.part, m.into) for m in merges] == [(2, 0)] and s.live_parts() == [1]
+    else:
+        assert merges == [] and s.live_parts() == [1, 2]
+
+
 def test_merge_at_classification_then_dropped_from_the_outputs():
     s = door_in_halves(34.0)
     s.config.joint_classify_iteration = 2  # an M-step iteration (em_interval 2)

@@ -10,7 +10,9 @@ both give the same results.
 
 from __future__ import annotations
 
+import functools
 import numbers
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -291,6 +293,19 @@ def components(
             return _core.components_keys(occ.keys, occ.shape, conn)
         return _core.components_dense(occ.dense, conn)
     return _core.components_dense(_grid_array(occ), conn)
+
+
+def piece_labels(point_sets: Sequence[np.ndarray], voxel_size: float,
+                 grow: int = 1) -> list[np.ndarray]:
+    """Each set's points labelled by the 26-connected piece their voxel belongs to, the pieces
+    being those of the union of all sets' cells at ``voxel_size``, grown by ``grow`` cells
+    (labels as :func:`components`: 1 = the largest piece). Two points share a label when
+    a chain of occupied cells, bridging gaps under ``grow`` cells, joins them."""
+    grid = voxel_grid(point_sets, voxel_size)
+    cells = dilate(functools.reduce(operator.or_, grid.occupancy), grow)
+    pieces, _ = components(cells, connectivity=26)
+    sparse = None if pieces.ndim == 3 else cells
+    return [grid.point_labels(points, pieces, sparse) for points in point_sets]
 
 
 def _points(points: np.ndarray, name: str) -> np.ndarray:

@@ -64,9 +64,6 @@ def claim_seen_through(
 def _attached(body: np.ndarray, strays: np.ndarray, voxel_size: float) -> np.ndarray:
     """Which of `strays` lie in a 26-connected piece of the cells of `body` and `strays`
     (grown by one cell) that holds a cell of `body`."""
-    grid = geometry.voxel_grid([body, strays], voxel_size)
-    cells = geometry.dilate(grid.occupancy[0] | grid.occupancy[1], 1)
-    pieces, _ = geometry.components(cells, connectivity=26)
-    sparse = None if pieces.ndim == 3 else cells
-    held = np.unique(grid.point_labels(body, pieces, sparse))
-    return np.isin(grid.point_labels(strays, pieces, sparse), held[held > 0])
+    of_body, of_strays = geometry.piece_labels([body, strays], voxel_size)
+    held = np.unique(of_body)
+    return np.isin(of_strays, held[held > 0])

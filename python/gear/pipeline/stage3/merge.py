@@ -10,12 +10,14 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from gear import geometry
 from gear.articulation import PartMotion
 from gear.kinematics import dq_to_rt, quat_angle
 from gear.pipeline.stage2.parts import IN_LINE_SHARE
+from gear.pipeline.stage2.voxels import Scale
 from gear.pipeline.stage3.joint_types import image_loss
 from gear.pipeline.stage3.joints import object_center, object_radius, solid_means
 from gear.pipeline.stage3.shared import RefineState
@@ -34,6 +36,13 @@ HALVES_MERGE_SHARE = 0.02
 # staying put. Real parts, fast and quick suites: 0.17 of the largest and up; sink_base's
 # leftovers of stage 2 (a strip inside the cabinet, a door's corner): 0.002 and 0.005.
 UNSEEN_GAIN_SHARE = 0.03
+# A movable part is one body: at least this share of its opaque centres lie in the largest
+# 26-connected piece of their cells (BODY_CELLS times stage 2's fine voxel, grown by one cell).
+# A part below it is strays the E-step gathered under a motion that hides them from the target
+# views, and is judged as a part not seen to move. Real parts, fast suite: 0.84 and up (0.66
+# for two doors stage 2 read as one part); such gatherings (sink_base): 0.19 and 0.37.
+BODY_SHARE = 0.5
+BODY_CELLS = 2.0
 # A part joins a sliding part only in line with it (as in stage 2): the box bounding the
 # slide's part across the slide spans the 2nd-98th percentiles of its centres (a stray Gaussian
 # does not stretch it) grown by this share of the object's radius.
@@ -65,23 +74,25 @@ def merge_parts(state: RefineState, apart: Sequence[tuple[int, int]] = (),
     another part's motion (or the identity) explains within MERGE_SHARE of what its own
     explains (HALVES_MERGE_SHARE for the two parts of a pair of `halves`), and that lies in
     line with that part when it slides; no part joins its partner in a pair of `apart`. A part
-    whose own motion gains at most UNSEEN_GAIN_SHARE of the largest gain joins the part that
-    explains it best, so long as no worse than staying put. A merged part keeps its column of
-    logits and its motion (set to the other part's) but no Gaussian: the run's outputs drop
-    it. Returns the merges in the order made."""
+    whose own motion gains at most UNSEEN_GAIN_SHARE of the largest gain, or that is no body
+    (BODY_SHARE), joins the part that explains it best, so long as no worse than staying put.
+    A merged part keeps its column of logits and its motion (set to the other part's) but no
+    Gaussian: the run's outputs drop it. Returns the merges in the order made."""
     kept_apart = {frozenset(pair) for pair in apart}
     shares = {frozenset(pair): HALVES_MERGE_SHARE for pair in halves}
+    solid = solid_means(state.gaussians).numpy()
+    cell = BODY_CELLS * Scale.of(solid).voxel_size(single_part=False)
     merges = []
-    while (merge := _next_merge(state, kept_apart, shares)) is not None:
+    while (merge := _next_merge(state, kept_apart, shares, cell)) is not None:
         _apply(state, merge)
         merges.append(merge)
     return merges
 
 
 def _next_merge(state: RefineState, kept_apart: set[frozenset[int]],
-                shares: dict[frozenset[int], float]) -> Merge | None:
+                shares: dict[frozenset[int], float], cell: float) -> Merge | None:
     """The first merge merge_parts makes on `state` as it is, or None; `shares`: the merge
-    share of the pairs that do not use MERGE_SHARE."""
+    share of the pairs that do not use MERGE_SHARE; `cell`: the body test's voxel size."""
     ids = state.gaussians.part_ids()
     counts = torch.bincount(ids, minlength=state.motion.num_parts).tolist()
     live = state.live_parts()
@@ -90,17 +101,28 @@ def _next_merge(state: RefineState, kept_apart: set[frozenset[int]],
     unseen = UNSEEN_GAIN_SHARE * max(gains.values(), default=0.0)
     for k in sorted(live, key=lambda k: (counts[k], k)):
         gain = gains[k]
+        unseen_part = gain <= unseen or _body_share(solid_means(state.gaussians, ids == k),
+                                                    cell) < BODY_SHARE
         costs = {0: gain} | {j: image_loss(state, moved_like(state.motion, k, j)) - base
                              for j in live if j != k}
         for into in sorted(costs, key=lambda j: (costs[j], j)):
             pair = frozenset((k, into))
             share = shares.get(pair, MERGE_SHARE)
-            allowed = max(share * max(gain, 0.0), gain if gain <= unseen else -math.inf)
+            allowed = max(share * max(gain, 0.0), gain if unseen_part else -math.inf)
             if costs[into] > allowed or pair in kept_apart:
                 continue
             if into == 0 or _in_line(state, ids, k, into):
                 return Merge(k, into, gain, costs[into])
     return None
+
+
+def _body_share(points: torch.Tensor, cell: float) -> float:
+    """The share of `points` [N, 3] in their largest 26-connected piece at `cell` (1 when
+    there are none)."""
+    if len(points) == 0:
+        return 1.0
+    labels = geometry.piece_labels([points.numpy()], cell)[0]
+    return float(np.bincount(labels).max() / len(labels))
 
 
 def moved_like(motion: PartMotion, k: int, j: int) -> PartMotion:
