@@ -21,6 +21,7 @@ from gear.pipeline.stage2.voxels import Scale
 from gear.pipeline.stage3.joint_types import image_loss
 from gear.pipeline.stage3.joints import object_center, object_radius, solid_means
 from gear.pipeline.stage3.shared import RefineState
+from gear.splats import Gaussians
 
 # A part merges when another motion costs it at most this share of what its own motion gains
 # over staying put (both in the image loss of the target views).
@@ -80,8 +81,7 @@ def merge_parts(state: RefineState, apart: Sequence[tuple[int, int]] = (),
     Gaussian: the run's outputs drop it. Returns the merges in the order made."""
     kept_apart = {frozenset(pair) for pair in apart}
     shares = {frozenset(pair): HALVES_MERGE_SHARE for pair in halves}
-    solid = solid_means(state.gaussians).numpy()
-    cell = BODY_CELLS * Scale.of(solid).voxel_size(single_part=False)
+    cell = _body_cell(state.gaussians)
     merges = []
     while (merge := _next_merge(state, kept_apart, shares, cell)) is not None:
         _apply(state, merge)
@@ -116,10 +116,19 @@ def _next_merge(state: RefineState, kept_apart: set[frozenset[int]],
     return None
 
 
+def _body_cell(g: Gaussians) -> float:
+    """The body test's voxel: BODY_CELLS times stage 2's fine voxel for the opaque centres of
+    the whole model (inf when they have no extent: every part is then one body)."""
+    solid = solid_means(g).numpy()
+    if len(solid) < 2 or not Scale.extent_of(solid) > 0:
+        return math.inf
+    return BODY_CELLS * Scale.of(solid).voxel_size(single_part=False)
+
+
 def _body_share(points: torch.Tensor, cell: float) -> float:
     """The share of `points` [N, 3] in their largest 26-connected piece at `cell` (1 when
-    there are none)."""
-    if len(points) == 0:
+    there are none or the cell is infinite)."""
+    if len(points) == 0 or not math.isfinite(cell):
         return 1.0
     labels = geometry.piece_labels([points.numpy()], cell)[0]
     return float(np.bincount(labels).max() / len(labels))
