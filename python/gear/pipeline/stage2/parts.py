@@ -393,6 +393,10 @@ def find_parts(
         if seen is not None:
             notes.append(f"component {comp} not a part: the target images see only "
                          f"{seen:.2f} of it move")
+        elif not detected and wanted is None and hyps[0].trusted:
+            notes.append(f"component {comp} not a part: its {hyps[0].kind} explains "
+                         f"{hyps[0].explained:.2f} of the change it maps onto, under "
+                         f"{DETECT_OVERLAP}")
         if hyps[0].trusted and (detected or wanted is not None):
             if wanted is None or len(parts) < wanted:
                 parts.append(_Part([comp], hyps))
