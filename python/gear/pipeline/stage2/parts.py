@@ -9,6 +9,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from gear import geometry
 from gear.articulation import RigidMotion
@@ -239,43 +240,83 @@ def _pieces_apart(
     split: VoxelSplit, mask: np.ndarray, hyps: list[Hypothesis],
     points_of: Callable[[np.ndarray], np.ndarray], total: int | None, extent: float,
     by_regions: bool,
-) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """The pieces to cut off the cells `mask` as parts of their own (_moves_on_its_own;
-    `points_of(cells)` gives the canonical centres in `cells`): first the cells its motion
-    (the reading in `hyps` landing most) leaves off target matter (_split_by_motion), then,
-    of what remains, the regions that need motions of their own (regions.motion_regions,
-    all but the largest; not when `by_regions` is False: the piece is such a region already):
-    touching doors turned by a few tens of degrees land nearly whole under one slide, so only
-    the motions of their regions tell them apart. Returns (the missed pieces, the regions)."""
+) -> tuple[list[_Piece], list[_Piece]]:
+    """The pieces to cut off the cells `mask` as parts of their own, with their motions
+    (_own_motion; `points_of(cells)` gives the canonical centres in `cells`): first the cells
+    its motion (the reading in `hyps` landing most) leaves off target matter
+    (_split_by_motion), then, of what remains, the regions that need motions of their own
+    (regions.motion_regions, all but the largest; not when `by_regions` is False: the piece is
+    such a region already): touching doors turned by a few tens of degrees land nearly whole
+    under one slide, so only the motions of their regions tell them apart. Returns (the missed
+    pieces, the regions)."""
     # Split by the reading landing most: a door folded by half a turn shows the target its
     # formerly hidden face, so its fold lands only half of it where the slide of the slab
     # lands all.
     widest = max(hyps, key=lambda h: h.landed)
-    rest = [piece for piece in _split_by_motion(split, mask, widest)
-            if _moves_on_its_own(split, piece, points_of(piece), total, extent)]
+
+    def parts_of(masks: list[np.ndarray]) -> list[_Piece]:
+        found = [(m, _own_motion(split, m, points_of(m), total, extent)) for m in masks]
+        return [_Piece(m, motion) for m, motion in found if motion is not None]
+
+    rest = parts_of(_split_by_motion(split, mask, widest))
     remaining = mask.copy()
     for piece in rest:
-        remaining &= ~piece
+        remaining &= ~piece.cells
     regions = motion_regions(split, remaining, points_of(remaining), hyps) if by_regions else []
-    return rest, [piece for piece in regions[1:]
-                  if _moves_on_its_own(split, piece, points_of(piece), total, extent)]
+    return rest, parts_of(regions[1:])
 
 
-def _moves_on_its_own(
+@dataclass
+class _Piece:
+    """Cells cut off a piece (a grid mask) and the motion that makes them a part of their own."""
+
+    cells: np.ndarray
+    motion: Hypothesis
+
+
+def _own_motion(
     split: VoxelSplit, piece: np.ndarray, points: np.ndarray, total: int | None, extent: float,
-) -> bool:
-    """Whether the cells `piece` (holding `points`) are a part of their own: at least 4
-    centres (with K unknown, `total` canonical centres, _large_enough), and a motion that lands
-    all but SPLIT_FRACTION of it and explains DETECT_OVERLAP of the change it maps onto, other
-    than a half-turn fold. A fold shows the target a slab's formerly hidden face, so where
-    things land cannot tell a door folded flat from what it uncovers: that stays one piece
-    (the images, not the voxels, tell a fold)."""
+) -> Hypothesis | None:
+    """The motion of the cells `piece` (holding `points`) when they are a part of their own:
+    at least 4 centres (with K unknown, `total` canonical centres, _large_enough), and a
+    motion that lands all but SPLIT_FRACTION of it and explains DETECT_OVERLAP of the change
+    it maps onto, other than a half-turn fold; else None. A fold shows the target a slab's
+    formerly hidden face, so where things land cannot tell a door folded flat from what it
+    uncovers: that stays one piece (the images, not the voxels, tell a fold)."""
     if len(points) < 4 or (total is not None and not _large_enough(points, total, extent)):
-        return False
+        return None
     own = init_motion(split, piece, points)[0]
-    if own.fold:
-        return False
-    return own.explained >= DETECT_OVERLAP and own.landed >= 1 - SPLIT_FRACTION
+    if own.fold or own.explained < DETECT_OVERLAP or own.landed < 1 - SPLIT_FRACTION:
+        return None
+    return own
+
+
+def _remainder_taken(split: VoxelSplit, remainder: np.ndarray, pieces: list[_Piece],
+                     own: Hypothesis) -> list[np.ndarray] | None:
+    """The cells of `pieces` grown by all of `remainder` (what is left of the piece they were
+    cut off), when their motions together land all but SPLIT_FRACTION of the remainder and
+    more of it than its own motion `own` does; else None. Two doors stacked on one hinge line
+    and turned by different angles form one piece: the reading landing most leaves each door's
+    far side off target matter, and those are cut off with their own turns, but the strip
+    along the shared hinge moves little under any turn about the line and stays behind as a
+    piece mixing both doors, landed half by any one turn (a real cabinet's: 0.53) and 0.95 by
+    the two doors' turns. It is no part: each of its cells goes to the nearest piece whose
+    motion lands it (the nearest piece when none does)."""
+    cells = np.argwhere(remainder)
+    if len(cells) == 0:
+        return None
+    lands = np.stack([split.landing(cells, piece.motion) for piece in pieces], axis=1)
+    landed = float(lands.any(axis=1).mean())
+    if landed < 1 - SPLIT_FRACTION or landed <= own.landed:
+        return None
+    dist = np.stack([cKDTree(np.argwhere(piece.cells)).query(cells)[0] for piece in pieces],
+                    axis=1)
+    landing_dist = np.where(lands, dist, np.inf)
+    nearest = np.where(lands.any(axis=1), landing_dist.argmin(axis=1), dist.argmin(axis=1))
+    grown = [piece.cells.copy() for piece in pieces]
+    for index, piece_cells in enumerate(grown):
+        piece_cells[tuple(cells[nearest == index].T)] = True
+    return grown
 
 
 def _large_enough(points: np.ndarray, total: int, extent: float) -> bool:
@@ -369,21 +410,33 @@ def find_parts(
             missed, apart = _pieces_apart(split, mask, hyps, lambda m: canon[points_in(m)],
                                           total, extent, comp not in regions_of)
             rest = missed + apart
-            for index, piece in enumerate(rest):
-                mask &= ~piece
-                pieces[piece] = next_label
+            remainder = mask.copy()
+            for piece in rest:
+                remainder &= ~piece.cells
+            points = canon[points_in(remainder)]
+            taken = None
+            if rest and len(points) >= 4:
+                hyps = init_motion(split, remainder, points)
+                taken = _remainder_taken(split, remainder, rest, hyps[0])
+            cut = [piece.cells for piece in rest] if taken is None else taken
+            for index, piece_cells in enumerate(cut):
+                mask &= ~piece_cells
+                pieces[piece_cells] = next_label
                 if index >= len(missed):
                     regions_of.add(next_label)  # one motion's region: not cut again
-                heapq.heappush(queue, (-int(piece.sum()), next_label))
+                heapq.heappush(queue, (-int(piece_cells.sum()), next_label))
                 next_label += 1
             if rest:
                 canon_labels = split.grid.point_labels(canon, pieces)
                 notes.append(f"component {comp}: {len(rest)} piece(s) its motion does not "
                              "explain split off")
-                points = canon[canon_labels == comp]
+                if taken is not None:
+                    notes.append(f"component {comp}: what remains of it joins those pieces, "
+                                 f"whose motions land more of it than its own "
+                                 f"({hyps[0].landed:.2f})")
+                    continue
                 if len(points) < 4:
                     continue
-                hyps = init_motion(split, mask, points)
         cells = np.argwhere(mask)  # what is left of the piece once cut
         hyps, free = _first_on_free_matter(split, claimed, cells, hyps)
         if free is not None:
