@@ -58,6 +58,16 @@ def coarse_init_seen(start, end, **kwargs):
                                              "end": surfaces_of(end)}, **kwargs)
 
 
+def last_quarters(result, n):
+    """The part labels of the canonical centres [2n, 3n) and [3n, 4n) (two moving pieces of
+    the scenes here), and the movable part holding most of each."""
+    owner = result.logits.argmax(1)
+    groups = owner[2 * n:3 * n], owner[3 * n:]
+    majority = tuple(int(np.bincount(g, minlength=result.num_parts)[1:].argmax()) + 1
+                     for g in groups)
+    return groups, majority
+
+
 def test_touching_parts_with_different_motions_give_two_parts():
     start, end, axis, pivot, pull = door_over_drawer()
     # The premise: on the grid stage 2 uses, door and drawer are one dynamic component.
@@ -86,11 +96,7 @@ def test_the_door_and_the_drawer_each_get_their_own_gaussians():
     result = coarse_init_seen(start, end)
     canon = start if result.canonical == "start" else end
     assert result.canonical == "end" and len(canon) == len(end)
-    n = len(end) // 4
-    owner = result.logits.argmax(1)
-    door, drawer = owner[2 * n: 3 * n], owner[3 * n:]
-    door_part = np.bincount(door, minlength=3)[1:].argmax() + 1
-    drawer_part = np.bincount(drawer, minlength=3)[1:].argmax() + 1
+    (door, drawer), (door_part, drawer_part) = last_quarters(result, len(end) // 4)
     assert door_part != drawer_part
     assert (door == door_part).mean() > 0.5 and (drawer == drawer_part).mean() > 0.4
 
@@ -131,10 +137,7 @@ def test_doors_stacked_on_one_hinge_line_are_two_whole_parts(upper_deg, lower_de
     assert (labels[2 * n:3 * n] == 1).mean() > 0.5 and (labels[3 * n:] == 1).mean() > 0.5
     result = coarse_init_seen(start, end)
     assert result.num_parts == 3, result.notes
-    owner = result.logits.argmax(1)
-    lower, upper = owner[2 * n:3 * n], owner[3 * n:]
-    lower_part = np.bincount(lower, minlength=3)[1:].argmax() + 1
-    upper_part = np.bincount(upper, minlength=3)[1:].argmax() + 1
+    (lower, upper), (lower_part, upper_part) = last_quarters(result, n)
     assert lower_part != upper_part
     # The rest of each door is static-leaning matter along the hinge (the slab's 1.5 cm
     # next to the line moves under a voxel): about a tenth of its centres.
