@@ -60,6 +60,10 @@ class TrainConfig:
     # [beyond] at the end of stage 3, a rod-like hinge (a lever) keeps only the swing of its
     # length: its twist about that length is invisible in any image (docs/method.md, "Rods")
     untwist_rods: bool = True
+    # [beyond] at the end of stage 3, a hinge or slide within a few degrees of a direction of
+    # the body's frame is tried along it, kept unless the images see it worse (docs/method.md,
+    # "Axes square to the body")
+    square_axes: bool = True
     # [beyond] with K estimated, a hinged part tall along its axis enters stage 3 cut in two
     # (doors stacked on one hinge line); the merge of parts read twice joins the halves again
     # when one motion explains both (docs/method.md, "Doors stacked on one hinge line")

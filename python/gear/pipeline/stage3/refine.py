@@ -22,6 +22,7 @@ from gear.pipeline.stage3.merge import merge_parts
 from gear.pipeline.stage3.mstep import motion_step
 from gear.pipeline.stage3.rods import untwist_rods
 from gear.pipeline.stage3.shared import RefineState
+from gear.pipeline.stage3.square_axes import square_axes
 from gear.splats import Gaussians
 
 
@@ -81,6 +82,11 @@ class Refine(RefineState):
         """rods.untwist_rods, when the config asks for it, recorded as an event."""
         if self.config.untwist_rods:
             self.events.append({"event": "rod_untwist", "parts": untwist_rods(self)})
+
+    def square_axes(self) -> None:
+        """square_axes.square_axes, when the config asks for it, recorded as an event."""
+        if self.config.square_axes:
+            self.events.append({"event": "axis_square", "parts": square_axes(self)})
 
     def result(self) -> Stage3Result:
         return Stage3Result(self.gaussians, self.motion, self.canonical)
@@ -175,6 +181,7 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
     started = time.perf_counter()
     stage.merge_parts_read_twice(halves=stage.halves)
     stage.untwist_rods()
+    stage.square_axes()
     runner.write_events(stage, when="end")
     runner.timed(stage.name, time.perf_counter() - started)
     result = stage.result()

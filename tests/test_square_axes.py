@@ -1,0 +1,219 @@
+"""Axes square to the body (gear.pipeline.stage3.square_axes): the body's frame from its
+surface normals, the squared axis and motion, and the end-of-stage-3 step that keeps a
+squared hinge only where the images do not see it worse."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gear.articulation import PartMotion
+from gear.config import make_config
+from gear.kinematics import dq_from_rt, quat_from_axis_angle, quat_from_matrix, quat_to_matrix
+from gear.pipeline.stage3 import Refine
+from gear.pipeline.stage3.square_axes import (
+    SQUARE_TOLERANCE_DEG,
+    body_frame,
+    squared_axis,
+    squared_motion,
+)
+from stage3_scenes import OFFSET, grid_gaussians, rot_z, views_of
+
+DTYPE = torch.float64
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle between two lines (sign-free), in degrees."""
+    cos = abs(float(np.dot(a, b))) / (np.linalg.norm(a) * np.linalg.norm(b))
+    return math.degrees(math.acos(min(1.0, cos)))
+
+
+def tilted(direction: np.ndarray, degrees: float, towards: np.ndarray) -> np.ndarray:
+    """`direction` turned by `degrees` towards `towards` (square to it)."""
+    a = math.radians(degrees)
+    return math.cos(a) * direction + math.sin(a) * towards
+
+
+def rotation(seed: int) -> np.ndarray:
+    """A random rotation matrix (QR of a Gaussian matrix)."""
+    q, r = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q * np.sign(np.diag(r))
+
+
+def noisy_normals(directions: list[np.ndarray], counts: list[int], noise_deg: float,
+                  seed: int) -> np.ndarray:
+    """`counts[i]` unit normals about `directions[i]` (random sign), each off by a random angle
+    of about `noise_deg`."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for d, count in zip(directions, counts, strict=True):
+        n = d + math.radians(noise_deg) * rng.normal(size=(count, 3))
+        n *= rng.choice([-1.0, 1.0], size=(count, 1))
+        out.append(n / np.linalg.norm(n, axis=1, keepdims=True))
+    return np.concatenate(out)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_box_gives_its_three_face_directions(seed):
+    frame = rotation(seed)
+    spread = np.random.default_rng(seed).normal(size=(300, 3))
+    normals = np.concatenate([
+        noisy_normals(list(frame), [500, 350, 250], noise_deg=3.0, seed=seed),
+        spread / np.linalg.norm(spread, axis=1, keepdims=True),  # curved bits, handles
+    ])
+    weights = np.random.default_rng(seed + 10).uniform(0.5, 1.5, len(normals))
+    found = body_frame(normals, weights)
+    assert found.shape == (3, 3)
+    assert np.allclose(found @ found.T, np.eye(3), atol=1e-9)
+    for direction in frame:
+        assert min(angle_deg(direction, f) for f in found) < 0.5
+
+
+def test_one_flat_front_or_noise_gives_no_frame():
+    front = rotation(4)[0]
+    spread = np.random.default_rng(5).normal(size=(400, 3))
+    spread /= np.linalg.norm(spread, axis=1, keepdims=True)
+    # The front of a pair of glasses: one strong direction, the curved rims spread the rest.
+    glasses = np.concatenate([noisy_normals([front], [600], 3.0, seed=6), spread])
+    assert body_frame(glasses, np.ones(len(glasses))) is None
+    assert body_frame(spread, np.ones(len(spread))) is None
+    assert body_frame(np.zeros((0, 3)), np.zeros(0)) is None
+    # A box seen through a few hazy normals (a quick model's static part) is no frame either.
+    few = noisy_normals(list(rotation(7)), [60, 40, 30], noise_deg=6.0, seed=8)
+    assert body_frame(few, np.ones(len(few))) is None
+
+
+def test_an_axis_is_squared_only_within_the_tolerance():
+    frame = rotation(7)
+    near = tilted(frame[1], SQUARE_TOLERANCE_DEG - 1, frame[2])
+    far = tilted(frame[1], SQUARE_TOLERANCE_DEG + 1, frame[2])
+    assert np.allclose(squared_axis(near, frame), frame[1])
+    assert np.allclose(squared_axis(-near, frame), -frame[1])  # the sign of the axis is kept
+    assert squared_axis(far, frame) is None
+
+
+def test_a_squared_hinge_keeps_its_angle_and_lands_the_centres_on_average():
+    frame = rotation(8)
+    spread = np.random.default_rng(9).normal(size=(200, 3))
+    points = torch.as_tensor(spread * 0.2 + 0.5, dtype=DTYPE)
+    axis = torch.as_tensor(tilted(frame[2], 3.0, frame[0]), dtype=DTYPE)
+    quat = quat_from_axis_angle(axis, torch.tensor(math.radians(60.0), dtype=DTYPE))
+    trans = torch.tensor([0.1, -0.2, 0.05], dtype=DTYPE)
+    new_quat, new_trans, moved = squared_motion(points, quat, trans, False, frame)
+    assert abs(moved - 3.0) < 1e-6
+    assert angle_deg(new_quat[1:].numpy(), frame[2]) < 1e-6
+    assert abs(2 * math.degrees(math.atan2(float(new_quat[1:].norm()), float(new_quat[0])))
+               - 60.0) < 1e-6
+    landed = points @ quat_to_matrix(quat).T + trans
+    landed_new = points @ quat_to_matrix(new_quat).T + new_trans
+    assert torch.allclose(landed.mean(0), landed_new.mean(0), atol=1e-12)
+    # A slide keeps its travel along the direction; a hinge already square is left alone.
+    travel = 0.3 * torch.as_tensor(tilted(frame[0], 2.0, frame[1]), dtype=DTYPE)
+    identity = torch.tensor([1.0, 0, 0, 0], dtype=DTYPE)
+    _, slide, _ = squared_motion(points, identity, travel, True, frame)
+    assert angle_deg(slide.numpy(), frame[0]) < 1e-6
+    assert abs(float(slide.norm()) - 0.3 * math.cos(math.radians(2.0))) < 1e-9
+    square = quat_from_axis_angle(torch.as_tensor(frame[2], dtype=DTYPE),
+                                  torch.tensor(1.0, dtype=DTYPE))
+    assert squared_motion(points, square, trans, False, frame) is None
+
+
+# Gaussians along each side of a face: enough normals for the frame's directions to count.
+TILES = 12
+
+
+def box_faces(frame: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Centres, quaternions and log-scales of flat Gaussians tiling five faces of a box
+    (0.8 x 0.5 x 0.6, open at the front, -y in its frame) turned by `frame` (rows: its x, y, z
+    axes in the world)."""
+    centres, quats = [], []
+    sizes = np.array([0.4, 0.25, 0.3])
+    for axis in range(3):
+        for side in (-1.0, 1.0):
+            if axis == 1 and side < 0:
+                continue  # the open front, where the door is
+            u, v = [a for a in range(3) if a != axis]
+            for a in np.linspace(-0.9, 0.9, TILES):
+                for b in np.linspace(-0.9, 0.9, TILES):
+                    local = np.zeros(3)
+                    local[axis], local[u], local[v] = side * sizes[axis], a * sizes[u], b * sizes[v]
+                    centres.append(frame.T @ local)
+                    # The Gaussian's short (third) axis along the face's normal.
+                    axes = np.eye(3)[[u, v, axis]]
+                    quats.append(quat_from_matrix(torch.as_tensor(frame.T @ axes.T)).numpy())
+    count = len(centres)
+    log_scales = torch.log(torch.tensor([0.04, 0.04, 0.002])).repeat(count, 1)
+    return (torch.as_tensor(np.array(centres), dtype=torch.float32),
+            torch.as_tensor(np.array(quats), dtype=torch.float32), log_scales)
+
+
+def hinge(axis: np.ndarray, pivot: np.ndarray, degrees: float) -> tuple[torch.Tensor, ...]:
+    """(qr, qd) of a turn by `degrees` about the line through `pivot` along `axis`."""
+    quat = quat_from_axis_angle(torch.as_tensor(axis / np.linalg.norm(axis), dtype=DTYPE),
+                                torch.tensor(math.radians(degrees), dtype=DTYPE))
+    pivot = torch.as_tensor(pivot, dtype=DTYPE)
+    return dq_from_rt(quat, pivot - quat_to_matrix(quat) @ pivot)
+
+
+def door_stage(true_axis: np.ndarray, trained_axis: np.ndarray) -> tuple[Refine, np.ndarray]:
+    """A Refine of an open box (static, turned 20 degrees about z) and a door (part 1) in
+    front of it, the target images rendered with the door turned 50 degrees about
+    `true_axis` (in the box's frame) and the motion trained about `trained_axis`; and the
+    box's frame."""
+    frame = rot_z(20.0).T  # rows: the box's axes in the world
+    centres, quats, log_scales = box_faces(frame)
+    gen = torch.Generator().manual_seed(11)
+    door_local = torch.rand(60, 3, generator=gen, dtype=DTYPE) * torch.tensor(
+        [0.8, 0.02, 0.6], dtype=DTYPE) + torch.tensor([-0.4, -0.27, -0.3], dtype=DTYPE)
+    door = (door_local @ torch.as_tensor(frame, dtype=DTYPE)).float()
+    g = grid_gaussians([(centres, 0), (door, 1)])
+    with torch.no_grad():
+        g["quats"][: len(centres)] = quats
+        g["log_scales"][: len(centres)] = log_scales
+    pivot = frame.T @ np.array([-0.4, -0.27, 0.0]) + OFFSET  # the door's left edge
+    world = lambda local: frame.T @ local  # noqa: E731
+    truth = PartMotion(2)
+    truth.set_part(1, *hinge(world(true_axis), pivot, 50.0), prismatic=False)
+    views = views_of(g, truth, n=4)
+    trained = PartMotion(2)
+    trained.set_part(1, *hinge(world(trained_axis), pivot, 50.0), prismatic=False)
+    return Refine(g, trained, None, views, views, make_config("quick"), seed=0), frame
+
+
+def door_axis_error(stage: Refine, frame: np.ndarray) -> float:
+    """Degrees between the door's hinge axis and the box's vertical axis."""
+    return angle_deg(np.asarray(stage.motion.joints(torch.zeros(3))[0]["axis"]), frame[2])
+
+
+def test_a_door_trained_about_a_tilted_axis_is_squared_to_the_box():
+    up, right = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    stage, frame = door_stage(true_axis=up, trained_axis=tilted(up, 3.0, right))
+    assert door_axis_error(stage, frame) > 2.9
+    stage.square_axes()
+    (event,) = stage.events
+    (record,) = event["parts"]
+    assert event["event"] == "axis_square" and record["kept"], record
+    assert record["squared_loss"] < record["loss"]
+    assert door_axis_error(stage, frame) < 0.05
+    assert torch.isfinite(stage.motion.qr).all() and torch.isfinite(stage.motion.qd).all()
+
+
+def test_a_door_that_truly_turns_off_square_keeps_its_axis():
+    up, right = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    skew = tilted(up, SQUARE_TOLERANCE_DEG - 1.0, right)
+    stage, frame = door_stage(true_axis=skew, trained_axis=skew)
+    stage.square_axes()
+    (record,) = stage.events[0]["parts"]
+    assert not record["kept"] and record["squared_loss"] > record["loss"], record
+    assert abs(door_axis_error(stage, frame) - (SQUARE_TOLERANCE_DEG - 1.0)) < 1e-3
+
+
+def test_squaring_off_leaves_the_motion():
+    up, right = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    stage, _ = door_stage(true_axis=up, trained_axis=tilted(up, 3.0, right))
+    stage.config.square_axes = False
+    qr, qd = stage.motion.qr.detach().clone(), stage.motion.qd.detach().clone()
+    stage.square_axes()
+    assert stage.events == []
+    assert torch.equal(stage.motion.qr.detach(), qr) and torch.equal(stage.motion.qd.detach(), qd)
