@@ -112,8 +112,8 @@ def test_a_squared_hinge_keeps_its_angle_and_lands_the_centres_on_average():
     assert squared_motion(points, square, trans, False, frame) is None
 
 
-# Gaussians along each side of a face: enough normals for the frame's directions to count.
-TILES = 12
+# Gaussians along each side of a face: enough centres for each face to count (MIN_FACE_CENTRES).
+TILES = 24
 # How far the door turns.
 OPEN_DEG = 80.0
 
@@ -138,7 +138,7 @@ def box_faces(frame: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
                     axes = np.eye(3)[[u, v, axis]]
                     quats.append(quat_from_matrix(torch.as_tensor(frame.T @ axes.T)).numpy())
     count = len(centres)
-    log_scales = torch.log(torch.tensor([0.04, 0.04, 0.002])).repeat(count, 1)
+    log_scales = torch.log(torch.tensor([0.02, 0.02, 0.001])).repeat(count, 1)
     return (torch.as_tensor(np.array(centres), dtype=torch.float32),
             torch.as_tensor(np.array(quats), dtype=torch.float32), log_scales)
 

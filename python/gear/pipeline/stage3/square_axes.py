@@ -28,8 +28,12 @@ from gear.pipeline.stage3.shared import RefineState
 FRAME_POINTS = 20_000
 FRAME_TRIALS = 300
 FRAME_TOLERANCE = 0.005
-# A face holds at least this share of the body's centres (a box's faces: 10-30 %)...
+# A face holds at least this share of the body's centres (a box's faces: 10-30 %) and this
+# many: the hazy static parts of quick models (300-600 opaque centres) gave frames 0.7-3.3
+# degrees off their boxes, about as far as the axes they would square; a fast model's faces
+# hold thousands (the oven counter's frame: 0.16 degrees off).
 MIN_FACE_SHARE = 0.05
+MIN_FACE_CENTRES = 500
 # ... and the second face's normal lies within this of square to the first's.
 SQUARE_FACES_DEG = 10.0
 # An axis is tried along a direction of the frame that lies within this of it.
@@ -37,7 +41,7 @@ SQUARE_TOLERANCE_DEG = 5.0
 # The squared motion is kept unless its image loss exceeds the trained motion's by more than
 # this share. The trained motion fits the labels it trained with: a real oven counter's door,
 # its axis 1.0 degree off and squared to within 0.16 of the truth, scored 3.0 % worse after
-# settling; a door turning 4.5 degrees off square, squared, 4-28 % worse as it opens 50-110
+# settling; a door turning 4.5 degrees off square, squared, 5-31 % worse as it opens 50-110
 # degrees. Below this share the body's frame decides.
 SQUARE_MARGIN = 0.05
 MIN_CENTRES = 10
@@ -50,9 +54,10 @@ def body_frame(points: np.ndarray, seed: int = 0) -> np.ndarray | None:
     """The body's frame [3, 3] (orthonormal rows) from its centres `points` [N, 3]: the normal
     of its largest face, that of its largest face square to the first (within
     SQUARE_FACES_DEG), made square to it, and their cross product; None unless both faces hold
-    MIN_FACE_SHARE of the centres. Faces are fitted to many centres, so their normals are
-    known far better than any one Gaussian's (the shortest axes of a real oven counter's
-    Gaussians spread 5.5 degrees about its faces, and their modes lay 2-3 degrees off)."""
+    MIN_FACE_SHARE of the centres and MIN_FACE_CENTRES. Faces are fitted to many centres, so
+    their normals are known far better than any one Gaussian's (the shortest axes of a real
+    oven counter's Gaussians spread 5.5 degrees about its faces, and their modes lay 2-3
+    degrees off)."""
     pts = np.asarray(points, dtype=np.float64)
     pts = pts[np.isfinite(pts).all(axis=1)]
     pts = pts[:: max(1, -(-len(pts) // FRAME_POINTS))]
@@ -76,7 +81,7 @@ def _largest_face(pts: np.ndarray, tolerance: float, rng: np.random.Generator,
     """The unit normal of the plane holding the most of `pts` within `tolerance` (RANSAC over
     FRAME_TRIALS triples, refitted to its points by least squares twice), among planes whose
     normal lies within SQUARE_FACES_DEG of square to `square_to` when given; None when it
-    holds under MIN_FACE_SHARE of them."""
+    holds under MIN_FACE_SHARE of them or MIN_FACE_CENTRES."""
     best, best_count = None, 0
     for a, b, c in pts[rng.integers(0, len(pts), (FRAME_TRIALS, 3))]:
         normal = np.cross(b - a, c - a)
@@ -98,7 +103,8 @@ def _largest_face(pts: np.ndarray, tolerance: float, rng: np.random.Generator,
             return None
         origin = near.mean(axis=0)
         normal = np.linalg.svd(near - origin, full_matrices=False)[2][-1]
-    if len(near) < MIN_FACE_SHARE * len(pts) or not _square_enough(normal, square_to):
+    if len(near) < max(MIN_FACE_CENTRES, MIN_FACE_SHARE * len(pts)) or not _square_enough(
+            normal, square_to):
         return None  # too small, or refitted onto the first face (a strip of it)
     return normal / np.linalg.norm(normal)
 
