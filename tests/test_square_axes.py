@@ -114,8 +114,9 @@ def test_a_squared_hinge_keeps_its_angle_and_lands_the_centres_on_average():
 
 # Gaussians along each side of a face: enough centres for each face to count (MIN_FACE_CENTRES).
 TILES = 24
-# How far the door turns.
+# How far the door turns, or slides as a drawer's front.
 OPEN_DEG = 80.0
+SLIDE = 0.3
 
 
 def box_faces(frame: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -151,11 +152,12 @@ def hinge(axis: np.ndarray, pivot: np.ndarray, degrees: float) -> tuple[torch.Te
     return dq_from_rt(quat, pivot - quat_to_matrix(quat) @ pivot)
 
 
-def door_stage(true_axis: np.ndarray, trained_axis: np.ndarray) -> tuple[Refine, np.ndarray]:
+def door_stage(true_axis: np.ndarray, trained_axis: np.ndarray,
+               slide: bool = False) -> tuple[Refine, np.ndarray]:
     """A Refine of an open box (static, turned 20 degrees about z) and a door (part 1) in
-    front of it, the target images rendered with the door turned 50 degrees about
-    `true_axis` (in the box's frame) and the motion trained about `trained_axis`; and the
-    box's frame."""
+    front of it, the target images rendered with the door turned OPEN_DEG about `true_axis`
+    (in the box's frame) and the motion trained about `trained_axis`; with `slide`, the door
+    slides SLIDE along each axis instead (a drawer's front); and the box's frame."""
     frame = rot_z(20.0).T  # rows: the box's axes in the world
     centres, quats, log_scales = box_faces(frame)
     gen = torch.Generator().manual_seed(11)
@@ -168,11 +170,19 @@ def door_stage(true_axis: np.ndarray, trained_axis: np.ndarray) -> tuple[Refine,
         g["log_scales"][: len(centres)] = log_scales
     pivot = frame.T @ np.array([-0.4, -0.27, 0.0]) + OFFSET  # the door's left edge
     world = lambda local: frame.T @ local  # noqa: E731
-    truth = PartMotion(2)
-    truth.set_part(1, *hinge(world(true_axis), pivot, OPEN_DEG), prismatic=False)
-    views = views_of(g, truth, n=4)
-    trained = PartMotion(2)
-    trained.set_part(1, *hinge(world(trained_axis), pivot, OPEN_DEG), prismatic=False)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=DTYPE)
+
+    def moved_about(axis: np.ndarray) -> PartMotion:
+        motion = PartMotion(2)
+        if slide:
+            travel = torch.as_tensor(SLIDE * world(axis), dtype=DTYPE)
+            motion.set_part(1, *dq_from_rt(identity, travel), prismatic=True)
+        else:
+            motion.set_part(1, *hinge(world(axis), pivot, OPEN_DEG), prismatic=False)
+        return motion
+
+    views = views_of(g, moved_about(true_axis), n=4)
+    trained = moved_about(trained_axis)
     return Refine(g, trained, None, views, views, make_config("quick"), seed=0), frame
 
 
@@ -192,6 +202,18 @@ def test_a_door_trained_about_a_tilted_axis_is_squared_to_the_box():
     assert record["squared_loss"] < record["loss"]
     assert door_axis_error(stage, frame) < 0.05
     assert torch.isfinite(stage.motion.qr).all() and torch.isfinite(stage.motion.qd).all()
+
+
+def test_a_drawer_pulled_along_a_tilted_line_is_squared_to_the_box():
+    out, right = np.array([0.0, -1.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    stage, frame = door_stage(true_axis=out, trained_axis=tilted(out, 3.0, right), slide=True)
+    stage.square_axes()
+    (record,) = stage.events[0]["parts"]
+    assert record["kept"], record
+    (joint,) = stage.motion.joints(torch.zeros(3))
+    assert joint["type"] == "prismatic"
+    assert angle_deg(np.asarray(joint["axis"]), frame[1]) < 0.05
+    assert abs(joint["distance"] - SLIDE) < 0.01
 
 
 def test_a_door_that_truly_turns_off_square_keeps_its_axis():
