@@ -235,7 +235,7 @@ def _settled(state: RefineState, motion: PartMotion, k: int, quat: torch.Tensor,
     views = state.scoring_views()
     black = [torch.zeros(3)] * len(views)
     optimizer = torch.optim.LBFGS(held.params, max_iter=SETTLE_EVALUATIONS,
-                                  line_search_fn="strong_wolfe")
+                                  max_eval=SETTLE_EVALUATIONS, line_search_fn="strong_wolfe")
 
     def closure() -> torch.Tensor:
         optimizer.zero_grad()
