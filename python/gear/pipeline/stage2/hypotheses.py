@@ -108,6 +108,27 @@ def fit_plane(points: np.ndarray) -> Plane:
     return Plane(centroid, axes / np.linalg.norm(axes, axis=1, keepdims=True), aspect, extent)
 
 
+def ransac_plane(pts: np.ndarray, tolerance: float, trials: int, rng: np.random.Generator,
+                 accept: Callable[[np.ndarray], bool] | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
+    """(a point, unit normal) of the plane through one of `trials` random triples of `pts`
+    [N, 3] (drawn from `rng`) holding the most of them within `tolerance`, among the normals
+    `accept` allows; None when no triple spans an allowed plane."""
+    best, best_count = None, 0
+    for a, b, c in pts[rng.integers(0, len(pts), (trials, 3))]:
+        normal = np.cross(b - a, c - a)
+        length = np.linalg.norm(normal)
+        if length <= 1e-12:
+            continue
+        normal = normal / length
+        if accept is not None and not accept(normal):
+            continue
+        count = int((np.abs((pts - a) @ normal) <= tolerance).sum())
+        if count > best_count:
+            best, best_count = (a, normal), count
+    return best
+
+
 def dominant_plane(points: np.ndarray, tolerance: float, seed: int = 0) -> Plane | None:
     """The plane (fit_plane of its inliers) holding the most of `points` [N, 3] within
     `tolerance`, by RANSAC over DOMINANT_PLANE_TRIALS triples of an even subsample of at most
@@ -120,17 +141,11 @@ def dominant_plane(points: np.ndarray, tolerance: float, seed: int = 0) -> Plane
     pts = pts[:: -(-len(pts) // DOMINANT_PLANE_POINTS)]
     if len(pts) < 3:
         return None
-    rng = np.random.default_rng(seed)
-    best = None
-    for a, b, c in pts[rng.integers(0, len(pts), (DOMINANT_PLANE_TRIALS, 3))]:
-        normal = np.cross(b - a, c - a)
-        length = np.linalg.norm(normal)
-        if length <= 1e-12:
-            continue
-        inliers = np.abs((pts - a) @ (normal / length)) <= tolerance
-        if best is None or inliers.sum() > best.sum():
-            best = inliers
-    if best is None or best.sum() < max(3, DOMINANT_PLANE_SHARE * len(pts)):
+    found = ransac_plane(pts, tolerance, DOMINANT_PLANE_TRIALS, np.random.default_rng(seed))
+    if found is None:
+        return None
+    best = np.abs((pts - found[0]) @ found[1]) <= tolerance
+    if best.sum() < max(3, DOMINANT_PLANE_SHARE * len(pts)):
         return None
     plane = fit_plane(pts[best])
     return plane if plane.is_plane else None

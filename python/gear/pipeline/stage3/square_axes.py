@@ -18,6 +18,7 @@ import torch
 
 from gear.articulation import PartMotion
 from gear.kinematics import dq_from_rt, dq_to_rt, quat_from_axis_angle, quat_to_matrix
+from gear.pipeline.stage2.hypotheses import ransac_plane
 from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY
 from gear.pipeline.stage3.joint_types import image_loss
 from gear.pipeline.stage3.shared import RefineState
@@ -87,18 +88,8 @@ def _largest_face(pts: np.ndarray, tolerance: float, rng: np.random.Generator,
     FRAME_TRIALS triples, refitted to its points by least squares twice), among planes whose
     normal lies within SQUARE_FACES_DEG of square to `square_to` when given; None when it
     holds under MIN_FACE_SHARE of them or MIN_FACE_CENTRES."""
-    best, best_count = None, 0
-    for a, b, c in pts[rng.integers(0, len(pts), (FRAME_TRIALS, 3))]:
-        normal = np.cross(b - a, c - a)
-        length = np.linalg.norm(normal)
-        if length <= 1e-12:
-            continue
-        normal = normal / length
-        if not _square_enough(normal, square_to):
-            continue
-        count = int((np.abs((pts - a) @ normal) <= tolerance).sum())
-        if count > best_count:
-            best, best_count = (a, normal), count
+    best = ransac_plane(pts, tolerance, FRAME_TRIALS, rng,
+                        accept=lambda normal: _square_enough(normal, square_to))
     if best is None:
         return None
     origin, normal = best
