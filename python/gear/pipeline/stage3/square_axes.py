@@ -169,6 +169,7 @@ def square_axes(state: RefineState) -> list[dict]:
         return []
     means = g["means"].detach().to(torch.float64)
     records = []
+    current = None  # the image loss of `motion`, once a part is tried
     for k in state.live_parts():
         points = means[(ids == k) & opaque]
         if len(points) < MIN_CENTRES:
@@ -180,12 +181,15 @@ def square_axes(state: RefineState) -> list[dict]:
         quat, trans, moved = squared
         quat, trans = _settled(state, motion, k, quat, trans, prismatic)
         candidate = _with_part(motion, k, (quat, trans), prismatic)
-        before, after = image_loss(state, motion), image_loss(state, candidate)
-        kept = after <= before * (1 + SQUARE_MARGIN)
+        if current is None:
+            current = image_loss(state, motion)
+        squared_loss = image_loss(state, candidate)
+        kept = squared_loss <= current * (1 + SQUARE_MARGIN)
+        records.append({"part": k, "axis_moved_deg": round(moved, 4), "loss": current,
+                        "squared_loss": squared_loss, "kept": kept})
         if kept:
             motion.set_part(k, *dq_from_rt(quat, trans), prismatic=prismatic)
-        records.append({"part": k, "axis_moved_deg": round(moved, 4), "loss": before,
-                        "squared_loss": after, "kept": kept})
+            current = squared_loss
     return records
 
 
