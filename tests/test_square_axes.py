@@ -42,16 +42,21 @@ def rotation(seed: int) -> np.ndarray:
     return q * np.sign(np.diag(r))
 
 
-def box_points(frame: np.ndarray, count: int, noise: float, seed: int) -> np.ndarray:
+def box_points(frame: np.ndarray, count: int, noise: float, seed: int,
+               wedge_deg: float = 0.0) -> np.ndarray:
     """`count` centres on the faces of a box 1.0 x 0.6 x 0.8 (open at the front: a cabinet's
     body) turned by `frame` (rows: its axes in the world), each off its face by a normal
-    error of `noise`."""
+    error of `noise`. With `wedge_deg`, the x and z faces of each pair tilt that much against
+    each other's (a body reconstructed slightly wedge-shaped): neither normal is the body's
+    axis, their mean is."""
     rng = np.random.default_rng(seed)
     half = np.array([0.5, 0.3, 0.4])
+    slope = math.tan(math.radians(wedge_deg))
     faces = [(a, s) for a in range(3) for s in (-1.0, 1.0) if (a, s) != (1, -1.0)]
     local = rng.uniform(-1, 1, size=(count, 3)) * half
     for i, (axis, side) in enumerate(faces[j] for j in rng.integers(0, len(faces), count)):
-        local[i, axis] = side * half[axis] + noise * rng.normal()
+        tilt = 0.0 if axis == 1 else side * slope * local[i, 2 - axis]  # x along z, z along x
+        local[i, axis] = side * half[axis] + tilt + noise * rng.normal()
     return local @ frame
 
 
@@ -65,6 +70,14 @@ def test_a_box_gives_its_three_face_directions(seed):
     assert np.allclose(found @ found.T, np.eye(3), atol=1e-9)
     for direction in frame:
         assert min(angle_deg(direction, f) for f in found) < 0.3
+
+
+def test_opposite_faces_tilted_against_each_other_give_the_axis_between_them():
+    frame = rotation(3)
+    points = box_points(frame, 12000, noise=0.002, seed=3, wedge_deg=1.5)
+    found = body_frame(points)
+    for direction in frame:
+        assert min(angle_deg(direction, f) for f in found) < 0.3  # each face alone: 1.5
 
 
 def test_a_round_body_one_face_or_too_few_centres_give_no_frame():

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -37,12 +38,16 @@ MIN_FACE_SHARE = 0.05
 MIN_FACE_CENTRES = 500
 # ... and the second face's normal lies within this of square to the first's.
 SQUARE_FACES_DEG = 10.0
+# A face's opposite: parallel to it within this, and at least this share of the object's size
+# away from it (a box's sides, not a ledge beside a face).
+OPPOSITE_FACES_DEG = 5.0
+OPPOSITE_FACE_GAP = 0.1
 # An axis is tried along a direction of the frame that lies within this of it...
 SQUARE_TOLERANCE_DEG = 5.0
-# ... and at least this far from it: the frame itself lay 0.12, 0.16 and 0.28 degrees off the
-# true axes of three fast models (cabinet_upper, oven_counter, the built-in fridge), so a
-# smaller move can make the axis worse as easily as better (the fridge's door was moved 0.30
-# degrees onto a frame 0.28 degrees off).
+# ... and at least this far from it: the frame itself lay 0.06-0.24 degrees off the true axes
+# of five fast models (cabinets, fridges, an oven counter), up to 0.7 with an unlucky RANSAC
+# seed, so a smaller move can make the axis worse as easily as better (the built-in fridge's
+# door, trained 0.01-0.58 degrees off on two machines).
 MIN_SQUARE_DEG = 0.5
 # The squared motion is kept unless its image loss exceeds the trained motion's by more than
 # this share. The trained motion fits the labels it trained with: a real oven counter's door,
@@ -57,13 +62,13 @@ SETTLE_EVALUATIONS = 20
 
 
 def body_frame(points: np.ndarray, seed: int = 0) -> np.ndarray | None:
-    """The body's frame [3, 3] (orthonormal rows) from its centres `points` [N, 3]: the normal
-    of its largest face, that of its largest face square to the first (within
-    SQUARE_FACES_DEG), made square to it, and their cross product; None unless both faces hold
-    MIN_FACE_SHARE of the centres and MIN_FACE_CENTRES. Faces are fitted to many centres, so
-    their normals are known far better than any one Gaussian's (the shortest axes of a real
-    oven counter's Gaussians spread 5.5 degrees about its faces, and their modes lay 2-3
-    degrees off)."""
+    """The body's frame [3, 3] (orthonormal rows) from its centres `points` [N, 3]: the
+    direction of its largest face, that of its largest face square to the first (within
+    SQUARE_FACES_DEG), made square to it, and their cross product (each direction from a face
+    and its opposite, _face_direction); None unless both faces hold MIN_FACE_SHARE of the
+    centres and MIN_FACE_CENTRES. Faces are fitted to many centres, so their normals are known
+    far better than any one Gaussian's (the shortest axes of a real oven counter's Gaussians
+    spread 5.5 degrees about its faces, and their modes lay 2-3 degrees off)."""
     pts = np.asarray(points, dtype=np.float64)
     pts = pts[np.isfinite(pts).all(axis=1)]
     pts = pts[:: max(1, -(-len(pts) // FRAME_POINTS))]
@@ -71,10 +76,10 @@ def body_frame(points: np.ndarray, seed: int = 0) -> np.ndarray | None:
         return None
     size = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
     rng = np.random.default_rng(seed)
-    first = _largest_face(pts, FRAME_TOLERANCE * size, rng, None)
+    first = _face_direction(pts, size, rng, None)
     if first is None:
         return None
-    second = _largest_face(pts, FRAME_TOLERANCE * size, rng, first)
+    second = _face_direction(pts, size, rng, first)
     if second is None:
         return None
     second = second - (second @ first) * first
@@ -82,14 +87,39 @@ def body_frame(points: np.ndarray, seed: int = 0) -> np.ndarray | None:
     return np.stack([first, second, np.cross(first, second)])
 
 
-def _largest_face(pts: np.ndarray, tolerance: float, rng: np.random.Generator,
-                  square_to: np.ndarray | None) -> np.ndarray | None:
-    """The unit normal of the plane holding the most of `pts` within `tolerance` (RANSAC over
-    FRAME_TRIALS triples, refitted to its points by least squares twice), among planes whose
-    normal lies within SQUARE_FACES_DEG of square to `square_to` when given; None when it
-    holds under MIN_FACE_SHARE of them or MIN_FACE_CENTRES."""
-    best = ransac_plane(pts, tolerance, FRAME_TRIALS, rng,
-                        accept=lambda normal: _square_enough(normal, square_to))
+def _face_direction(pts: np.ndarray, size: float, rng: np.random.Generator,
+                   square_to: np.ndarray | None) -> np.ndarray | None:
+    """The unit normal of the largest face of `pts` (an object `size` across), among faces
+    within SQUARE_FACES_DEG of square to `square_to` when given, averaged with that of the
+    largest face opposite it (parallel within OPPOSITE_FACES_DEG, OPPOSITE_FACE_GAP of the
+    size or more away, as large as a face must be) when there is one. A fast model's opposite
+    faces tilt against each other (0.5-2.6 degrees apart on five real bodies): the mean of
+    the two normals lay 0.07-0.14 degrees off the true axes, either face alone up to 1.0."""
+    tolerance = FRAME_TOLERANCE * size
+    least = max(MIN_FACE_CENTRES, MIN_FACE_SHARE * len(pts))
+    face = _largest_face(pts, tolerance, least, rng,
+                         lambda normal: _square_enough(normal, square_to))
+    if face is None:
+        return None
+    origin, normal = face
+    beyond = pts[np.abs((pts - origin) @ normal) >= OPPOSITE_FACE_GAP * size]
+    if len(beyond) < least:
+        return normal
+    opposite = _largest_face(beyond, tolerance, least, rng,
+                             lambda other: _parallel_enough(other, normal))
+    if opposite is None:
+        return normal
+    mean = normal + math.copysign(1.0, float(opposite[1] @ normal)) * opposite[1]
+    return mean / np.linalg.norm(mean)
+
+
+def _largest_face(pts: np.ndarray, tolerance: float, least: float, rng: np.random.Generator,
+                  accept: Callable[[np.ndarray], bool]) -> tuple[np.ndarray, np.ndarray] | None:
+    """(a point, unit normal) of the plane holding the most of `pts` within `tolerance`
+    (RANSAC over FRAME_TRIALS triples, refitted to its points by least squares twice), among
+    the normals `accept` allows; None when it holds fewer than `least` of them or its refit
+    left what `accept` allows."""
+    best = ransac_plane(pts, tolerance, FRAME_TRIALS, rng, accept=accept)
     if best is None:
         return None
     origin, normal = best
@@ -99,10 +129,9 @@ def _largest_face(pts: np.ndarray, tolerance: float, rng: np.random.Generator,
             return None
         origin = near.mean(axis=0)
         normal = np.linalg.svd(near - origin, full_matrices=False)[2][-1]
-    if len(near) < max(MIN_FACE_CENTRES, MIN_FACE_SHARE * len(pts)) or not _square_enough(
-            normal, square_to):
-        return None  # too small, or refitted onto the first face (a strip of it)
-    return normal / np.linalg.norm(normal)
+    if len(near) < least or not accept(normal):
+        return None  # too small, or refitted onto another face (a strip of it)
+    return origin, normal / np.linalg.norm(normal)
 
 
 def _square_enough(normal: np.ndarray, square_to: np.ndarray | None) -> bool:
@@ -110,6 +139,11 @@ def _square_enough(normal: np.ndarray, square_to: np.ndarray | None) -> bool:
     without one)."""
     limit = math.sin(math.radians(SQUARE_FACES_DEG))
     return square_to is None or abs(float(normal @ square_to)) <= limit
+
+
+def _parallel_enough(normal: np.ndarray, other: np.ndarray) -> bool:
+    """Whether the unit normals lie within OPPOSITE_FACES_DEG of parallel (either sign)."""
+    return abs(float(normal @ other)) >= math.cos(math.radians(OPPOSITE_FACES_DEG))
 
 
 def squared_axis(axis: np.ndarray, frame: np.ndarray) -> np.ndarray | None:
