@@ -19,8 +19,11 @@ from gear.kinematics import (
     dq_sclerp,
     dq_to_rt,
     quat_angle,
+    quat_axis_angle,
+    quat_from_axis_angle,
     quat_from_matrix,
     quat_mul,
+    quat_normalize,
     quat_to_matrix,
 )
 
@@ -356,3 +359,15 @@ def test_deform_gradcheck():
         return deform(m, q, torch.softmax(lg, dim=1), r, d)
 
     assert torch.autograd.gradcheck(run, args)
+
+
+def test_axis_angle_round_trips_with_the_sign_of_the_vector_part():
+    rng = np.random.default_rng(4)
+    q = quat_normalize(torch.as_tensor(rng.normal(size=(64, 4)), dtype=torch.float64))
+    q[:8, 0] = -q[:8, 0].abs()  # turns past half a revolution about the vector part
+    axis, angle = quat_axis_angle(q)
+    assert torch.allclose(quat_from_axis_angle(axis, angle), q, atol=1e-12)
+    assert bool(((angle >= 0) & (angle < 2 * math.pi)).all())
+    assert torch.allclose((axis * q[:, 1:]).sum(-1), q[:, 1:].norm(dim=-1), atol=1e-12)
+    still_axis, still_angle = quat_axis_angle(torch.tensor([1.0, 0.0, 0.0, 0.0]))
+    assert torch.equal(still_axis, torch.zeros(3)) and float(still_angle) == 0.0

@@ -124,6 +124,17 @@ def quat_from_axis_angle(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tenso
     return torch.cat([torch.cos(half), torch.sin(half) * axis], dim=-1)
 
 
+def quat_axis_angle(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(unit axis [..., 3], angle in [0, 2 pi) radians) of unit quaternions q [..., 4] with
+    q = quat_from_axis_angle(axis, angle): the axis keeps the sign of q's vector part, so a
+    motion moved onto a nearby axis of the same sign keeps its turn. The identity's axis is
+    the zero vector (it has none)."""
+    vector = q[..., 1:]
+    length = safe_norm(vector, keepdim=True)
+    axis = vector / length.clamp(min=torch.finfo(q.dtype).tiny)
+    return axis, 2.0 * torch.atan2(length[..., 0], q[..., 0])
+
+
 def quat_angle(q: torch.Tensor) -> torch.Tensor:
     """Rotation angle in [0, pi] of unit quaternions (the same for q and -q)."""
     return 2.0 * torch.atan2(safe_norm(q[..., 1:]), q[..., 0].abs())

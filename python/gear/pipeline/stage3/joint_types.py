@@ -75,11 +75,15 @@ def motion_loss(state: RefineState, candidate: PartMotion) -> float:
 def image_loss(state: RefineState, candidate: PartMotion) -> float:
     """Photometric + depth loss of the hard-assigned model of `state` moved by `candidate` as
     it is, over the scoring views on a black background."""
-    views = state.scoring_views()
-    black = [torch.zeros(3)] * len(views)
     with torch.no_grad():
-        terms = state.held_image_terms(candidate, views, black)
-    return float(sum(terms.values()))
+        return float(scoring_loss(state, candidate))
+
+
+def scoring_loss(state: RefineState, candidate: PartMotion) -> torch.Tensor:
+    """image_loss as a tensor, differentiable in `candidate`'s motion where gradients are on."""
+    views = state.scoring_views()
+    terms = state.held_image_terms(candidate, views, [torch.zeros(3)] * len(views))
+    return sum(terms.values())
 
 
 def tune_motion(state: RefineState, candidate: PartMotion, steps: int) -> None:

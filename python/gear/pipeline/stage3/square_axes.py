@@ -18,10 +18,16 @@ import numpy as np
 import torch
 
 from gear.articulation import PartMotion
-from gear.kinematics import dq_from_rt, dq_to_rt, quat_from_axis_angle, quat_to_matrix
+from gear.kinematics import (
+    dq_from_rt,
+    dq_to_rt,
+    quat_axis_angle,
+    quat_from_axis_angle,
+    quat_to_matrix,
+)
 from gear.pipeline.stage2.hypotheses import ransac_plane
 from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY
-from gear.pipeline.stage3.joint_types import image_loss
+from gear.pipeline.stage3.joint_types import image_loss, scoring_loss
 from gear.pipeline.stage3.shared import RefineState
 
 # The body's faces: RANSAC planes of its opaque centres (an even subsample of at most
@@ -170,9 +176,9 @@ def squared_motion(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor
             return None
         axis = trans / length
     else:
-        axis = quat[1:] / quat[1:].norm().clamp(min=1e-12)
         if quat[1:].norm() <= 1e-9:
             return None
+        axis, angle = quat_axis_angle(quat)
     target = squared_axis(axis.numpy(), frame)
     if target is None:
         return None
@@ -182,7 +188,6 @@ def squared_motion(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor
         return None
     if prismatic:
         return quat.clone(), (trans @ target) * target, moved
-    angle = 2 * torch.atan2(quat[1:].norm(), quat[0])
     new_quat = quat_from_axis_angle(target, angle)
     landed = points @ quat_to_matrix(quat).T + trans
     new_trans = (landed - points @ quat_to_matrix(new_quat).T).mean(dim=0)
@@ -240,8 +245,7 @@ class _AlongAxis:
             self.axis = trans / travel
             self.params = [torch.nn.Parameter(travel.clone())]
         else:
-            self.axis = quat[1:] / quat[1:].norm()
-            angle = 2 * torch.atan2(quat[1:].norm(), quat[0])
+            self.axis, angle = quat_axis_angle(quat)
             self.params = [torch.nn.Parameter(angle.clone()), torch.nn.Parameter(trans.clone())]
 
     def part(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -266,14 +270,12 @@ def _settled(state: RefineState, motion: PartMotion, k: int, quat: torch.Tensor,
     (deterministic, SETTLE_EVALUATIONS loss evaluations at most): the squared axis gets the
     settled angle and pivot the trained one had."""
     held = _AlongAxis(motion, k, quat, trans, prismatic)
-    views = state.scoring_views()
-    black = [torch.zeros(3)] * len(views)
     optimizer = torch.optim.LBFGS(held.params, max_iter=SETTLE_EVALUATIONS,
                                   max_eval=SETTLE_EVALUATIONS, line_search_fn="strong_wolfe")
 
     def closure() -> torch.Tensor:
         optimizer.zero_grad()
-        loss = sum(state.held_image_terms(held, views, black).values())
+        loss = scoring_loss(state, held)
         loss.backward()
         return loss
 
