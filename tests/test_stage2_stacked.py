@@ -10,6 +10,9 @@ from gear.metrics import rotation_matrix
 from gear.pipeline.stage2.parts import seed_logits
 from gear.pipeline.stage2.stacked import MIN_TURN_DEG, split_stacked, stacked_cut
 
+# Stage 2's voxel for these slabs (a part is one body at it: 2000 centres over 0.5 x 1.7).
+VOXEL = 0.05
+
 
 def slab(width: float, height: float, n: int = 2000, seed: int = 0) -> np.ndarray:
     """Centres of a door-like slab: `width` along x, `height` along z, 0.02 thick."""
@@ -24,7 +27,7 @@ def turn(deg: float, axis=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
 
 def test_a_tall_turned_slab_is_cut_at_its_median_across_the_axis():
     door = slab(0.5, 1.7)
-    beyond = stacked_cut(door, turn(35.0))
+    beyond = stacked_cut(door, turn(35.0), VOXEL)
     assert beyond is not None
     assert beyond.sum() == len(door) // 2
     # the cut runs across the hinge axis (z): every centre beyond lies above every other
@@ -38,11 +41,22 @@ def test_a_tall_turned_slab_is_cut_at_its_median_across_the_axis():
     ((0.5, 1.7), turn(35.0, axis=(1.0, 0.0, 0.0))),  # the hinge along its width
 ])
 def test_short_or_barely_turned_parts_stay_whole(shape, motion):
-    assert stacked_cut(slab(*shape), motion) is None
+    assert stacked_cut(slab(*shape), motion, VOXEL) is None
+
+
+def test_a_stray_chunk_across_the_cabinet_does_not_hide_a_tall_door():
+    door = slab(0.5, 1.7)
+    # 13 % of the part 1.4 across, as a real upper cabinet's pair of doors came from stage 2
+    chunk = slab(0.3, 0.4, n=300, seed=3) + np.array([1.4, 0.0, 0.6])
+    means = np.concatenate([door, chunk])
+    beyond = stacked_cut(means, turn(35.0), VOXEL)
+    assert beyond is not None
+    # the cut lies at the door's median across its axis: half of the door beyond it
+    assert beyond[: len(door)].sum() == len(door) // 2
 
 
 def test_too_few_gaussians_stay_whole():
-    assert stacked_cut(slab(0.5, 1.7, n=60), turn(35.0)) is None
+    assert stacked_cut(slab(0.5, 1.7, n=60), turn(35.0), VOXEL) is None
 
 
 def test_split_stacked_seeds_the_new_part_and_keeps_the_rest():
@@ -54,7 +68,7 @@ def test_split_stacked_seeds_the_new_part_and_keeps_the_rest():
     logits = seed_logits(part_of, 3)
     slide = (np.eye(3), np.array([0.0, -0.3, 0.0]))
     candidates = [[turn(35.0), slide], [slide]]
-    out, out_candidates, halves, notes = split_stacked(logits, candidates, means)
+    out, out_candidates, halves, notes = split_stacked(logits, candidates, means, VOXEL)
     assert out.shape == (len(means), 4) and np.isfinite(out).all()
     assert halves == [(1, 3)]
     assert len(notes) == 1 and "part 1" in notes[0]
@@ -72,5 +86,5 @@ def test_split_stacked_seeds_the_new_part_and_keeps_the_rest():
 
 def test_split_stacked_without_candidates_changes_nothing():
     logits = seed_logits(np.zeros(10, dtype=np.int64), 1)
-    out, candidates, halves, notes = split_stacked(logits, [], np.zeros((10, 3)))
+    out, candidates, halves, notes = split_stacked(logits, [], np.zeros((10, 3)), VOXEL)
     assert np.array_equal(out, logits) and candidates == [] and halves == [] and notes == []

@@ -105,7 +105,8 @@ def initialise_parts(models: dict[str, Gaussians], views: dict[str, list[TrainVi
                            np.asarray(init.logits, dtype=np.float32))
     candidates, notes, halves = init.candidates, list(init.notes), []
     if c.split_stacked_hinges and c.num_parts is None and c.merge_redundant_parts:
-        logits, candidates, halves, cuts = split_stacked(logits, candidates, centres[canonical])
+        logits, candidates, halves, cuts = split_stacked(logits, candidates, centres[canonical],
+                                                         init.voxel_size)
         notes += cuts
     result = Stage2Result(
         canonical=canonical,
