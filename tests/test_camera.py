@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gear.camera import Camera
+from gear.camera import UPRIGHT_TOLERANCE_DEG, Camera, capture_up
 
 
 def test_blender_round_trip_and_axes():
@@ -40,3 +40,42 @@ def test_unproject_inverts_project():
 def test_bad_matrices_are_rejected(matrix, message):
     with pytest.raises(ValueError, match=message):
         Camera(matrix, 10, 10, 5, 5, 10, 10)
+
+
+def ring(up: np.ndarray, count: int = 8, sweep_deg: float = 300.0,
+         roll_deg: float = 0.0) -> list[Camera]:
+    """Cameras on a ring about `up` around the origin, 30 degrees above it, looking at it and
+    held upright about `up`; the first one rolled by `roll_deg` about its view direction."""
+    up = up / np.linalg.norm(up)
+    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    other = np.cross(up, side)
+    cams = []
+    for i, a in enumerate(np.radians(np.linspace(0.0, sweep_deg, count))):
+        eye = 3.0 * (np.cos(a) * side + np.sin(a) * other) + 1.7 * up
+        cam = Camera.look_at(eye, np.zeros(3), up, 0.8, 64, 64)
+        if i == 0 and roll_deg:
+            r = np.radians(roll_deg)
+            roll = np.array([[np.cos(r), -np.sin(r), 0, 0], [np.sin(r), np.cos(r), 0, 0],
+                             [0, 0, 1, 0], [0, 0, 0, 1.0]])
+            cam = Camera(roll @ cam.world_to_cam, cam.fx, cam.fy, cam.cx, cam.cy, 64, 64)
+        cams.append(cam)
+    return cams
+
+
+@pytest.mark.parametrize("up", [[0, 0, 1.0], [0, 1.0, 0], [0.3, -0.2, 0.93]])
+def test_capture_up_is_the_upright_the_cameras_were_held_about(up):
+    up = np.asarray(up) / np.linalg.norm(up)
+    found = capture_up(ring(up))
+    assert found is not None and np.allclose(found, up, atol=1e-9)
+    # Rolled within the tolerance: the direction moves little; beyond it: none.
+    slight = capture_up(ring(up, roll_deg=0.5 * UPRIGHT_TOLERANCE_DEG))
+    assert slight is not None and float(slight @ up) > np.cos(np.radians(0.5))
+    assert capture_up(ring(up, roll_deg=3.0)) is None
+
+
+def test_capture_up_needs_cameras_around_the_object():
+    up = np.array([0.0, 0.0, 1.0])
+    assert capture_up(ring(up)[:2]) is None
+    assert capture_up(ring(up, sweep_deg=5.0)) is None  # all from one side: any up fits
+    assert capture_up(ring(up, sweep_deg=60.0)) is not None

@@ -18,6 +18,7 @@ from gear.pipeline.stage3.square_axes import (
     body_frame,
     squared_axis,
     squared_motion,
+    upright_frame,
 )
 from stage3_scenes import OFFSET, grid_gaussians, rot_z, views_of
 
@@ -169,13 +170,18 @@ def hinge(axis: np.ndarray, pivot: np.ndarray, degrees: float) -> tuple[torch.Te
 
 
 def door_stage(true_axis: np.ndarray, trained_axis: np.ndarray,
-               slide: bool = False) -> tuple[Refine, np.ndarray]:
+               slide: bool = False, back_only: bool = False) -> tuple[Refine, np.ndarray]:
     """A Refine of an open box (static, turned 20 degrees about z) and a door (part 1) in
     front of it, the target images rendered with the door turned OPEN_DEG about `true_axis`
     (in the box's frame) and the motion trained about `trained_axis`; with `slide`, the door
-    slides SLIDE along each axis instead (a drawer's front); and the box's frame."""
+    slides SLIDE along each axis instead (a drawer's front); with `back_only`, the static body
+    is the box's back face alone (one face: no frame of its own); and the box's frame. The
+    cameras are held upright about z."""
     frame = rot_z(20.0).T  # rows: the box's axes in the world
     centres, quats, log_scales = box_faces(frame)
+    if back_only:
+        back = (centres.double() @ torch.as_tensor(frame, dtype=DTYPE).T)[:, 1] > 0.24
+        centres, quats, log_scales = centres[back], quats[back], log_scales[back]
     gen = torch.Generator().manual_seed(11)
     door_local = torch.rand(60, 3, generator=gen, dtype=DTYPE) * torch.tensor(
         [0.8, 0.02, 0.6], dtype=DTYPE) + torch.tensor([-0.4, -0.27, -0.3], dtype=DTYPE)
@@ -250,3 +256,32 @@ def test_squaring_off_leaves_the_motion():
     stage.square_axes()
     assert stage.events == []
     assert torch.equal(stage.motion.qr.detach(), qr) and torch.equal(stage.motion.qd.detach(), qd)
+
+
+def test_a_door_before_one_face_is_squared_to_the_upright_of_the_cameras():
+    """A body with one face has no frame of its own (a pair of glasses' front); the cameras,
+    held upright about z, give the direction the door's hinge is squared to."""
+    up, right = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    stage, frame = door_stage(true_axis=up, trained_axis=tilted(up, 3.0, right), back_only=True)
+    ids = stage.gaussians.part_ids()
+    assert body_frame(stage.gaussians["means"].detach()[ids == 0].numpy()) is None
+    stage.square_axes()
+    (record,) = stage.events[0]["parts"]
+    assert record["kept"] and record["squared_loss"] < record["loss"], record
+    assert door_axis_error(stage, frame) < 0.05
+
+
+def test_an_upright_frame_holds_the_up_and_a_face_square_to_it():
+    rng = np.random.default_rng(3)
+    plate = rng.uniform(-1, 1, size=(5000, 3)) * np.array([1.0, 0.002, 0.4])  # normal y
+    up = tilted(np.array([0.0, 0.0, 1.0]), 2.0, np.array([0.0, 1.0, 0.0]))
+    frame = upright_frame(plate, up)
+    assert frame is not None and frame.shape == (3, 3)
+    assert np.allclose(frame @ frame.T, np.eye(3), atol=1e-9)
+    assert np.allclose(frame[0], up)
+    assert angle_deg(frame[1], np.array([0.0, 1.0, 0.0])) < 2.1  # the face, made square to up
+    assert upright_frame(plate, None) is None
+    ball = rng.normal(size=(5000, 3))
+    ball /= np.linalg.norm(ball, axis=1, keepdims=True)
+    only_up = upright_frame(ball, up)  # no face: the up alone
+    assert only_up is not None and only_up.shape == (1, 3) and np.allclose(only_up[0], up)

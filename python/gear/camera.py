@@ -7,6 +7,7 @@ OpenCV axes only.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -170,3 +171,30 @@ class Camera:
         cam = np.stack([x, y, z], axis=1)
         c2w = self.cam_to_world
         return cam @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+# Cameras count as held upright when every one's right axis lies within this of square to one
+# direction (a camera rolled further, or cameras spread over too little of a turn about the
+# object to fix that direction, give none).
+UPRIGHT_TOLERANCE_DEG = 1.0
+# The right axes must spread over a turn about the object: the second singular value of their
+# stack at least this share of the first (all cameras on one side: near zero).
+UPRIGHT_MIN_SPREAD = 0.2
+
+
+def capture_up(cameras: Sequence[Camera]) -> np.ndarray | None:
+    """The world direction [3] (unit) the `cameras` were held upright about: the one square to
+    every camera's right axis (least squares), signed against their image-down axes. None when
+    fewer than three cameras, when their right axes do not spread over a turn about the object,
+    or when one lies more than UPRIGHT_TOLERANCE_DEG off square to it (a rolled camera)."""
+    if len(cameras) < 3:
+        return None
+    poses = np.array([np.asarray(c.world_to_cam, dtype=np.float64)[:3, :3] for c in cameras])
+    rights, downs = poses[:, 0], poses[:, 1]
+    _, spread, directions = np.linalg.svd(rights, full_matrices=False)
+    if spread[1] < UPRIGHT_MIN_SPREAD * spread[0]:
+        return None
+    up = directions[-1]
+    if np.abs(rights @ up).max() > np.sin(np.radians(UPRIGHT_TOLERANCE_DEG)):
+        return None
+    return up if float(downs.sum(axis=0) @ up) < 0 else -up

@@ -3,7 +3,8 @@ lines parallel to its sides, its drawers along them), but the motion steps train
 motion whose axis nothing holds in the directions the images barely see: a strip along the
 hinge that trained with the wrong part pulls it a degree or a few off. At the end of stage 3
 each hinge or slide whose axis lies within SQUARE_TOLERANCE_DEG of a direction of the body's
-frame (the normals of two square faces of the static part, when it has them) is tried along
+frame (the normals of two square faces of the static part, when it has them, else the upright
+the cameras were held about and the normal of a face square to it) is tried along
 that direction, its angle and translation settled with the axis held; it is kept unless the
 images see it clearly worse than the motion trained (docs/method.md, "Axes square to the
 body")."""
@@ -18,6 +19,7 @@ import numpy as np
 import torch
 
 from gear.articulation import PartMotion
+from gear.camera import capture_up
 from gear.kinematics import (
     dq_from_rt,
     dq_to_rt,
@@ -91,6 +93,31 @@ def body_frame(points: np.ndarray, seed: int = 0) -> np.ndarray | None:
     second = second - (second @ first) * first
     second = second / np.linalg.norm(second)
     return np.stack([first, second, np.cross(first, second)])
+
+
+def upright_frame(points: np.ndarray, up: np.ndarray | None, seed: int = 0) -> np.ndarray | None:
+    """The frame [M, 3] (orthonormal rows) of a body with no two square faces, from the
+    direction `up` the cameras were held upright about (gear.camera.capture_up): `up`, and
+    with the direction of the body's largest face square to it (within SQUARE_FACES_DEG, made
+    square; _face_direction) that one and their cross product. None without `up`. A pair of
+    glasses is one thin front: no second face, but its temples turn about the upright of the
+    capture (the frame from the front and the upright lies 0.07 degrees off their hinges at
+    fast; the trained axes 0.9 and 1.6)."""
+    if up is None:
+        return None
+    up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    pts = np.asarray(points, dtype=np.float64)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    pts = pts[:: max(1, -(-len(pts) // FRAME_POINTS))]
+    if len(pts) < MIN_CENTRES:
+        return up[None]
+    size = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    face = _face_direction(pts, size, np.random.default_rng(seed), up)
+    if face is None:
+        return up[None]
+    face = face - (face @ up) * up
+    face = face / np.linalg.norm(face)
+    return np.stack([up, face, np.cross(up, face)])
 
 
 def _face_direction(pts: np.ndarray, size: float, rng: np.random.Generator,
@@ -205,7 +232,11 @@ def square_axes(state: RefineState) -> list[dict]:
     g, motion = state.gaussians, state.motion
     ids = g.part_ids()
     opaque = torch.sigmoid(g["opacity"].detach()) > STAGE2_MIN_OPACITY
-    frame = body_frame(g["means"].detach()[(ids == 0) & opaque].numpy())
+    body = g["means"].detach()[(ids == 0) & opaque].numpy()
+    frame = body_frame(body)
+    if frame is None:
+        cameras = [v.camera for v in state.canonical_views + state.target_views]
+        frame = upright_frame(body, capture_up(cameras))
     if frame is None:
         return []
     means = g["means"].detach().to(torch.float64)
