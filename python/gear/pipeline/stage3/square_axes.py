@@ -77,9 +77,7 @@ def body_frame(points: np.ndarray, seed: int = 0) -> np.ndarray | None:
     centres and MIN_FACE_CENTRES. Faces are fitted to many centres, so their normals are known
     far better than any one Gaussian's (the shortest axes of a real oven counter's Gaussians
     spread 5.5 degrees about its faces, and their modes lay 2-3 degrees off)."""
-    pts = np.asarray(points, dtype=np.float64)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    pts = pts[:: max(1, -(-len(pts) // FRAME_POINTS))]
+    pts = _frame_sample(points)
     if len(pts) < MIN_CENTRES:
         return None
     size = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
@@ -101,14 +99,11 @@ def upright_frame(points: np.ndarray, up: np.ndarray | None, seed: int = 0) -> n
     with the direction of the body's largest face square to it (within SQUARE_FACES_DEG, made
     square; _face_direction) that one and their cross product. None without `up`. A pair of
     glasses is one thin front: no second face, but its temples turn about the upright of the
-    capture (the frame from the front and the upright lies 0.07 degrees off their hinges at
-    fast; the trained axes 0.9 and 1.6)."""
+    capture (their trained axes 1.6 and 0.9 degrees off it at fast)."""
     if up is None:
         return None
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    pts = np.asarray(points, dtype=np.float64)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    pts = pts[:: max(1, -(-len(pts) // FRAME_POINTS))]
+    pts = _frame_sample(points)
     if len(pts) < MIN_CENTRES:
         return up[None]
     size = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
@@ -118,6 +113,14 @@ def upright_frame(points: np.ndarray, up: np.ndarray | None, seed: int = 0) -> n
     face = face - (face @ up) * up
     face = face / np.linalg.norm(face)
     return np.stack([up, face, np.cross(up, face)])
+
+
+def _frame_sample(points: np.ndarray) -> np.ndarray:
+    """The finite rows of `points` [N, 3] as float64, evenly subsampled to at most
+    FRAME_POINTS."""
+    pts = np.asarray(points, dtype=np.float64)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    return pts[:: max(1, -(-len(pts) // FRAME_POINTS))]
 
 
 def _face_direction(pts: np.ndarray, size: float, rng: np.random.Generator,
