@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from gear.camera import UPRIGHT_TOLERANCE_DEG, Camera, capture_up
+from gear.commands.render import orbit_cameras
 
 
 def test_blender_round_trip_and_axes():
@@ -44,22 +45,15 @@ def test_bad_matrices_are_rejected(matrix, message):
 
 def ring(up: np.ndarray, count: int = 8, sweep_deg: float = 300.0,
          roll_deg: float = 0.0) -> list[Camera]:
-    """Cameras on a ring about `up` around the origin, 30 degrees above it, looking at it and
-    held upright about `up`; the first one rolled by `roll_deg` about its view direction."""
-    up = up / np.linalg.norm(up)
-    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    side /= np.linalg.norm(side)
-    other = np.cross(up, side)
-    cams = []
-    for i, a in enumerate(np.radians(np.linspace(0.0, sweep_deg, count))):
-        eye = 3.0 * (np.cos(a) * side + np.sin(a) * other) + 1.7 * up
-        cam = Camera.look_at(eye, np.zeros(3), up, 0.8, 64, 64)
-        if i == 0 and roll_deg:
-            r = np.radians(roll_deg)
-            roll = np.array([[np.cos(r), -np.sin(r), 0, 0], [np.sin(r), np.cos(r), 0, 0],
-                             [0, 0, 1, 0], [0, 0, 0, 1.0]])
-            cam = Camera(roll @ cam.world_to_cam, cam.fx, cam.fy, cam.cx, cam.cy, 64, 64)
-        cams.append(cam)
+    """Cameras on an orbit about `up` (the viewer's, 30 degrees above the object), held upright
+    about `up`; the first one rolled by `roll_deg` about its view direction."""
+    cams = orbit_cameras(np.zeros(3), 1.0, np.linspace(0.0, sweep_deg, count), 30.0, up, 64)
+    if roll_deg:
+        r = np.radians(roll_deg)
+        roll = np.array([[np.cos(r), -np.sin(r), 0, 0], [np.sin(r), np.cos(r), 0, 0],
+                         [0, 0, 1, 0], [0, 0, 0, 1.0]])
+        c = cams[0]
+        cams[0] = Camera(roll @ c.world_to_cam, c.fx, c.fy, c.cx, c.cy, c.width, c.height)
     return cams
 
 
