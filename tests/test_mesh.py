@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from gear import _core
 from gear.camera import Camera
 from gear.mesh import tsdf_fuse
 from gear.metrics import chamfer
@@ -165,3 +166,63 @@ def test_marching_cubes_only_on_fully_observed_cubes():
     mesh = _extract_surface(volume, observed, lo=np.zeros(3), voxel=1.0)
     assert len(mesh.faces) > 0
     np.testing.assert_allclose(mesh.vertices[:, 0], 1.5)
+
+
+def integrate_reference(centres: np.ndarray, views: list[tuple[np.ndarray, Camera]],
+                        trunc: float) -> tuple[np.ndarray, np.ndarray]:
+    """The projective TSDF update written with numpy, float32 op by op as the native one: per
+    view, the voxels in front of the camera that project into the image onto a pixel with a
+    positive depth d and lie less than `trunc` behind it add min((d - z) / trunc, 1)."""
+    f = np.float32
+    total = np.zeros(len(centres), f)
+    count = np.zeros(len(centres), f)
+    for depth, cam in views:
+        m = cam.world_to_cam.astype(f)
+        x, y, z = (m[r, 0] * centres[:, 0] + m[r, 1] * centres[:, 1] + m[r, 2] * centres[:, 2]
+                   + m[r, 3] for r in range(3))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = f(cam.fx) * x / z + f(cam.cx)
+            v = f(cam.fy) * y / z + f(cam.cy)
+        inside = (z > f(1e-6)) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        pixel = np.where(inside, v.astype(np.int64) * cam.width + u.astype(np.int64), 0)
+        observed = depth.reshape(-1)[pixel]
+        sdf = observed - z
+        update = inside & (observed > 0) & (sdf >= -f(trunc))
+        total += np.where(update, np.minimum(sdf / f(trunc), f(1)), f(0))
+        count += update
+    with np.errstate(invalid="ignore"):
+        return np.where(count > 0, total / count, f(0)), count
+
+
+def test_native_integration_matches_the_numpy_reference():
+    rng = np.random.default_rng(4)
+    cams = ring_cameras(6)
+    spheres = [(np.zeros(3), 0.3)]
+    views = []
+    for cam in cams:
+        depth, _ = render_spheres(cam, spheres)
+        depth[rng.random(depth.shape) < 0.1] = 0.0  # unobserved pixels
+        views.append((depth, cam))
+    centres = rng.uniform(-0.5, 0.5, (20000, 3)).astype(np.float32)
+    trunc = 0.05
+    distance, weight = _core.tsdf_integrate(
+        centres, [d for d, _ in views], [c.world_to_cam.astype(np.float32) for _, c in views],
+        [(c.fx, c.fy, c.cx, c.cy) for _, c in views], trunc)
+    want_distance, want_weight = integrate_reference(centres, views, trunc)
+    assert weight.dtype == distance.dtype == np.float32
+    assert np.array_equal(weight, want_weight)
+    assert 0.05 < (weight > 0).mean() < 0.95  # the test sees both observed and unobserved voxels
+    np.testing.assert_allclose(distance, want_distance, rtol=0, atol=1e-6)
+
+
+def test_native_integration_rejects_bad_inputs():
+    cam = ring_cameras(1)[0]
+    depth = np.ones((cam.height, cam.width), np.float32)
+    args = ([depth], [cam.world_to_cam.astype(np.float32)], [(cam.fx, cam.fy, cam.cx, cam.cy)])
+    centres = np.zeros((4, 3), np.float32)
+    with pytest.raises(ValueError, match="trunc"):
+        _core.tsdf_integrate(centres, *args, 0.0)
+    with pytest.raises(ValueError, match="depths"):
+        _core.tsdf_integrate(centres, [depth, depth], *args[1:], 0.1)
+    with pytest.raises(ValueError):
+        _core.tsdf_integrate(np.full((4, 3), np.nan, np.float32), *args, 0.1)

@@ -4,7 +4,8 @@ The volume covers only the bounding box of the back-projected valid depth (plus 
 signed distance is evaluated only in a narrow band around those points: voxels farther than the
 truncation distance from every observed surface point can never hold a zero crossing. Each view
 updates the band voxels that project onto one of its valid pixels and lie in front of, or less than
-`trunc` behind, the observed depth (the usual projective TSDF with a running average). Marching
+`trunc` behind, the observed depth (the usual projective TSDF, averaged over the views; native
+threads, gear_core::voxel::tsdf_integrate). Marching
 cubes then runs only on cubes whose eight corners were observed, so unobserved space (inside the
 object, outside the band) never produces spurious surfaces.
 
@@ -20,17 +21,18 @@ from collections.abc import Sequence
 
 import numpy as np
 import trimesh
-from scipy import ndimage, sparse
+from scipy import sparse
 from scipy.sparse import csgraph
 from skimage.measure import marching_cubes
 
+from gear import _core
 from gear.camera import Camera
+from gear.geometry import dilate
 
 # Dense grids hold a bool band mask plus float32 TSDF and weight (9 bytes per voxel): 2^25 voxels
 # is about 300 MB. Larger boxes are coarsened automatically (with a warning).
 MAX_VOXELS = 2**25
 _MIN_TRUNC_VOXELS = 2.5  # the band must span a few voxels for marching cubes to see a crossing
-_BLOCK = 1 << 16  # voxels updated together (see tsdf_fuse)
 
 
 def _check_inputs(
@@ -123,60 +125,23 @@ def tsdf_fuse(
     idx = np.clip(np.round((points - lo) / voxel).astype(np.int64), 0, np.array(shape) - 1)
     band[idx[:, 0], idx[:, 1], idx[:, 2]] = True
     radius = int(np.ceil(trunc / voxel))
-    band = ndimage.binary_dilation(band, structure=np.ones((3, 3, 3), bool), iterations=radius)
+    band = dilate(band, radius)
 
     flat = np.flatnonzero(band)
     ijk = np.stack(np.unravel_index(flat, shape), axis=1)
-    # Voxel i sits at lo + i·voxel. Stored as [3, N]: numpy's [N,3] @ [3,3] is many times slower
-    # than [3,3] @ [3,N] for large N.
-    centres = np.ascontiguousarray((lo + ijk * voxel).T, dtype=np.float32)
-    tsdf = np.zeros(len(flat), np.float32)
-    weight = np.zeros(len(flat), np.float32)
+    centres = np.ascontiguousarray(lo + ijk * voxel, dtype=np.float32)  # voxel i at lo + i·voxel
     views = [(np.where(m, d, 0).astype(np.float32), cam)
              for d, m, cam in zip(depths, valid, cameras, strict=True) if m.any()]
-    # Blocks of voxels small enough for the temporaries to stay in cache, all views per block:
-    # about 3x faster than whole-array passes per view.
-    for s in range(0, len(flat), _BLOCK):
-        block = slice(s, s + _BLOCK)
-        for depth, cam in views:
-            _integrate(tsdf[block], weight[block], centres[:, block], depth, cam, trunc)
+    tsdf, weight = _core.tsdf_integrate(
+        centres, [d for d, _ in views],
+        [cam.world_to_cam.astype(np.float32) for _, cam in views],
+        [(cam.fx, cam.fy, cam.cx, cam.cy) for _, cam in views], trunc)
 
     volume = np.ones(shape, np.float32)  # unobserved = outside; masked out below anyway
     observed = np.zeros(shape, bool)
     volume.reshape(-1)[flat] = tsdf
     observed.reshape(-1)[flat] = weight > 0
     return _extract_surface(volume, observed, lo, voxel)
-
-
-def _integrate(
-    tsdf: np.ndarray,
-    weight: np.ndarray,
-    centres: np.ndarray,
-    depth: np.ndarray,
-    cam: Camera,
-    trunc: float,
-) -> None:
-    """One view's projective TSDF update (running average with unit weights), in place.
-
-    `centres` is [3, N] world coordinates of the band voxels.
-    """
-    w2c = cam.world_to_cam.astype(np.float32)
-    cam_pts = w2c[:3, :3] @ centres + w2c[:3, 3:4]
-    z = cam_pts[2]
-    # Dense over all band voxels (no index compaction: cheaper than fancy-index writes).
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # Pixel (u, v) has its centre at (i + 0.5, j + 0.5): the pixel index is floor(u), floor(v).
-        u = cam.fx * cam_pts[0] / z + cam.cx
-        v = cam.fy * cam_pts[1] / z + cam.cy
-    inside = (z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    pixel = np.where(inside, v.astype(np.int64) * cam.width + u.astype(np.int64), 0)
-    observed_depth = depth.reshape(-1)[pixel]
-    sdf = observed_depth - z
-    update = inside & (observed_depth > 0) & (sdf >= -trunc)
-    value = np.where(update, np.minimum(sdf / trunc, 1.0), 0.0)
-    new_weight = weight + update
-    tsdf[:] = (tsdf * weight + value) / np.maximum(new_weight, 1.0)
-    weight[:] = new_weight
 
 
 def _extract_surface(

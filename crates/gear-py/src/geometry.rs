@@ -1,17 +1,19 @@
-//! Bindings of voxel grids, components and KNN (gear_core::voxel, gear_core::knn).
+//! Bindings of voxel grids, components, TSDF integration and KNN (gear_core::voxel,
+//! gear_core::knn).
 //!
 //! Arguments are checked here (dtype, shape, layout); values (finite points, voxel size, k,
 //! key order) are checked by gear-core, whose errors become `ValueError`s naming the argument.
 //! The work runs without the GIL on read-only views of the caller's arrays.
 
 use gear_core::knn::{as_points, Queries};
-use gear_core::voxel::{self, check_keys, Connectivity, GridSpec};
+use gear_core::voxel::{self, check_keys, Connectivity, DepthView, GridSpec};
 use numpy::{IntoPyArray, PyArray1, PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use crate::args::{array, Dim};
 use crate::errors::guarded;
+use crate::splat::camera;
 
 const POINTS: [Dim; 2] = [Dim::Any("N"), Dim::Fixed(3)];
 const KEYS: [Dim; 1] = [Dim::Any("M")];
@@ -263,7 +265,50 @@ fn reshape<'py, T: numpy::Element>(
     flat.reshape(shape)
 }
 
+/// TSDF integration of z-depth images into voxels: `(distance float32 [N], weight float32
+/// [N])` at `centres` [N, 3] (world), the mean truncated signed distance (units of `trunc`, at
+/// most 1) over the views that observed each voxel and their count (gear_core::voxel::
+/// tsdf_integrate). View i: `depths[i]` [H, W] (0 where unobserved), `world_to_cams[i]` [4, 4],
+/// `intrinsics[i]` (fx, fy, cx, cy).
+#[pyfunction]
+fn tsdf_integrate<'py>(
+    py: Python<'py>,
+    centres: &Bound<'py, PyAny>,
+    depths: Vec<Bound<'py, PyAny>>,
+    world_to_cams: Vec<Bound<'py, PyAny>>,
+    intrinsics: Vec<(f32, f32, f32, f32)>,
+    trunc: f32,
+) -> PyResult<(Vector<'py, f32>, Vector<'py, f32>)> {
+    if depths.len() != world_to_cams.len() || depths.len() != intrinsics.len() {
+        return Err(PyValueError::new_err(format!(
+            "tsdf_integrate: {} depths, {} world_to_cams and {} intrinsics",
+            depths.len(),
+            world_to_cams.len(),
+            intrinsics.len()
+        )));
+    }
+    let centres = array::<f32>(centres, "centres", &POINTS)?;
+    let depths = depths
+        .iter()
+        .map(|d| array::<f32>(d, "depths[i]", &[Dim::Any("H"), Dim::Any("W")]))
+        .collect::<PyResult<Vec<_>>>()?;
+    let mut views = Vec::with_capacity(depths.len());
+    for ((depth, w2c), k) in depths.iter().zip(&world_to_cams).zip(intrinsics) {
+        let shape = depth.shape();
+        let size =
+            |n: usize| u32::try_from(n).map_err(|_| PyValueError::new_err("image too large"));
+        views.push(DepthView {
+            depth: depth.as_slice()?,
+            camera: camera(w2c, k, size(shape[1])?, size(shape[0])?)?,
+        });
+    }
+    let points = as_points(centres.as_slice()?);
+    let out = guarded(py, move || voxel::tsdf_integrate(points, &views, trunc))?;
+    Ok((out.distance.into_pyarray(py), out.weight.into_pyarray(py)))
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(tsdf_integrate, m)?)?;
     m.add_function(wrap_pyfunction!(knn, m)?)?;
     m.add_function(wrap_pyfunction!(grid_enclosing, m)?)?;
     m.add_function(wrap_pyfunction!(voxel_indices, m)?)?;

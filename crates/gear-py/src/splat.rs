@@ -108,6 +108,30 @@ impl ForwardArgs<'_> {
     }
 }
 
+/// A camera from its world-to-camera matrix (float32 [4, 4]), (fx, fy, cx, cy) and image size.
+pub(crate) fn camera(
+    world_to_cam: &Bound<'_, PyAny>,
+    (fx, fy, cx, cy): (f32, f32, f32, f32),
+    width: u32,
+    height: u32,
+) -> PyResult<Camera> {
+    let w2c = array::<f32>(
+        world_to_cam,
+        "world_to_cam",
+        &[Dim::Fixed(4), Dim::Fixed(4)],
+    )?;
+    let w2c = w2c.as_slice()?;
+    Ok(Camera {
+        world_to_cam: std::array::from_fn(|r| std::array::from_fn(|c| w2c[4 * r + c])),
+        fx,
+        fy,
+        cx,
+        cy,
+        width,
+        height,
+    })
+}
+
 #[allow(clippy::too_many_arguments)]
 fn forward_args<'py>(
     means: &Bound<'py, PyAny>,
@@ -132,23 +156,8 @@ fn forward_args<'py>(
         array::<f32>(opacity_logits, "opacity_logits", &[n])?,
         features,
     ];
-    let w2c = array::<f32>(
-        world_to_cam,
-        "world_to_cam",
-        &[Dim::Fixed(4), Dim::Fixed(4)],
-    )?;
-    let w2c = w2c.as_slice()?;
+    let camera = camera(world_to_cam, intrinsics, width, height)?;
     let background = array::<f32>(background, "background", &[Dim::Fixed(channels)])?;
-    let (fx, fy, cx, cy) = intrinsics;
-    let camera = Camera {
-        world_to_cam: std::array::from_fn(|r| std::array::from_fn(|c| w2c[4 * r + c])),
-        fx,
-        fy,
-        cx,
-        cy,
-        width,
-        height,
-    };
     let options = RenderOptions {
         depth,
         background: background.as_slice()?.to_vec(),
