@@ -23,8 +23,9 @@ from gear.splats import rendering
 from test_train import refine_stage
 
 # float32 rounding of a differently shaped blend, carried through a few Adam steps (the
-# differences seen are below 1e-7)
-ATOL = 1e-6
+# differences seen: below 1e-7 with torch's per-tensor Adam, one logit 1.3e-6 apart with the
+# fused kernel, whose step divides a rounding difference in a small gradient by its own size)
+ATOL = 2e-6
 RTOL = 1e-5
 
 

@@ -67,7 +67,13 @@ def test_held_key_changes_with_every_edit_and_step():
     key = held_key(g)
     assert held_key(g) == key
     g["logits"].grad = torch.ones_like(g["logits"])
-    g.optimizer.step()  # an E-step's update in place
+    g.optimizer.step()  # an E-step's update in place (the fused kernel bumps no version)
+    assert held_key(g) != key
+    key = held_key(g)
+    g.optimizer.step()
+    assert held_key(g) != key
+    key = held_key(g)
+    g.lower_opacity(torch.arange(len(g)) < 10, 0.01)  # an edit of the values in place
     assert held_key(g) != key
     key = held_key(g)
     g.keep(torch.ones(len(g), dtype=torch.bool))  # an edit that keeps every Gaussian

@@ -79,9 +79,17 @@ class HeldModel:
 
 def held_key(g: Gaussians) -> tuple:
     """Changes whenever the set of Gaussians is edited (densify/prune: `generation`, since a
-    freed tensor's id can be reused) or a parameter is updated in place (an optimizer step:
-    torch's in-place version counter)."""
-    return (g.generation, *((id(t), t._version) for t in g.params.values()))
+    freed tensor's id can be reused) or a parameter is updated in place: by an edit of its
+    values (torch's in-place version counter) or by an optimizer step (the step counts of its
+    Adam state: the fused Adam kernel writes the parameters without bumping their version)."""
+    state = g.optimizer.state if g.optimizer is not None else {}
+    return (g.generation, *((id(t), t._version, _adam_steps(state.get(t)))
+                            for t in g.params.values()))
+
+
+def _adam_steps(moments: dict | None) -> float:
+    """How many Adam steps a parameter has taken (0 before its first)."""
+    return float(moments["step"]) if moments and "step" in moments else 0.0
 
 
 class RefineState(Stage):
