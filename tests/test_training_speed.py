@@ -96,8 +96,9 @@ def test_densify_statistics_are_the_ndc_gradient_norm_of_visible_gaussians():
     with torch.no_grad():
         means[3] = math.inf  # culled by the render (zero gradient); its norm would be NaN
     densifier = Densifier(g)
-    densifier.accumulate(means, camera)
-    densifier.accumulate(means, camera)
+    densifier.accumulate(means, camera, 1, 10)
+    densifier.accumulate(means, camera, 9, 10)
+    densifier.accumulate(means, camera, 10, 10)  # no densification left: nothing gathered
     # the definition, per Gaussian in float64
     for i in range(n):
         grad = means.grad[i].double().numpy()

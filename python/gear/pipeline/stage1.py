@@ -52,7 +52,7 @@ class ReconstructState(Stage):
         loss = sum(terms.values())
         g.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        self.densifier.accumulate(g["means"], view.camera)
+        self.densifier.accumulate(g["means"], view.camera, it + 1, c.densify_until)
         g.optimizer.step()
         self.events += self.densifier.maintain(g, it + 1, c, self.extent, c.densify_until,
                                                True, self.generator)

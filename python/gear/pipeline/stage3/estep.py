@@ -54,7 +54,7 @@ def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
     g.optimizer.zero_grad(set_to_none=True)
     state.motion_optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    state.densifier.accumulate(means_d, view.camera)
+    state.densifier.accumulate(means_d, view.camera, it + 1, c.stage3_densify_until)
     g.optimizer.step()
     if phase == "J":
         state.motion_optimizer.step()
