@@ -20,7 +20,7 @@ pub mod types;
 #[cfg(test)]
 mod test_rng;
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;
 
 /// How kernels outside the rasterizer (e.g. [`crate::sh`]) declare and dispatch theirs.
 pub(crate) mod kernel_dispatch {

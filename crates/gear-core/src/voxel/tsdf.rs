@@ -113,23 +113,7 @@ fn observed_distance(centre: &[f32; 3], view: &DepthView, trunc: f32) -> Option<
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A camera at the origin looking down +z (identity world-to-camera), w x h pixels.
-    fn camera(width: u32, height: u32) -> Camera {
-        let mut world_to_cam = [[0.0; 4]; 4];
-        for (i, row) in world_to_cam.iter_mut().enumerate() {
-            row[i] = 1.0;
-        }
-        Camera {
-            world_to_cam,
-            fx: 10.0,
-            fy: 10.0,
-            cx: width as f32 / 2.0,
-            cy: height as f32 / 2.0,
-            width,
-            height,
-        }
-    }
+    use crate::splat::tests::origin_camera as camera;
 
     #[test]
     fn a_wall_gives_its_truncated_distance_in_front_and_nothing_far_behind() {
