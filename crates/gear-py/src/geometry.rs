@@ -292,11 +292,10 @@ fn tsdf_integrate<'py>(
         .iter()
         .map(|d| array::<f32>(d, "depths[i]", &[Dim::Any("H"), Dim::Any("W")]))
         .collect::<PyResult<Vec<_>>>()?;
+    let size = |n: usize| u32::try_from(n).map_err(|_| PyValueError::new_err("image too large"));
     let mut views = Vec::with_capacity(depths.len());
     for ((depth, w2c), k) in depths.iter().zip(&world_to_cams).zip(intrinsics) {
         let shape = depth.shape();
-        let size =
-            |n: usize| u32::try_from(n).map_err(|_| PyValueError::new_err("image too large"));
         views.push(DepthView {
             depth: depth.as_slice()?,
             camera: camera(w2c, k, size(shape[1])?, size(shape[0])?)?,

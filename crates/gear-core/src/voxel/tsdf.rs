@@ -72,7 +72,7 @@ fn integrate_voxel(centre: &[f32; 3], views: &[DepthView], trunc: f32) -> (f32, 
     let (mut sum, mut count) = (0.0f32, 0.0f32);
     for view in views {
         if let Some(sdf) = observed_distance(centre, view, trunc) {
-            // The running average of the views so far (unit weights).
+            // Unit weights: the mean over the observing views, divided once at the end.
             count += 1.0;
             sum += (sdf / trunc).min(1.0);
         }
@@ -103,6 +103,7 @@ fn observed_distance(centre: &[f32; 3], view: &DepthView, trunc: f32) -> Option<
     if !(u >= 0.0 && u < cam.width as f32 && v >= 0.0 && v < cam.height as f32) {
         return None;
     }
+    // The clamps only matter where an f32 just below the size rounds up to it (huge images).
     let pixel = (v as usize).min(cam.height as usize - 1) * cam.width as usize
         + (u as usize).min(cam.width as usize - 1);
     let depth = view.depth[pixel];
