@@ -139,6 +139,23 @@ def test_two_drawers_pulled_alike_stay_two_parts(monkeypatch):
     assert [(m.part, m.into) for m in merge_parts(s)] == [(1, 2)]
 
 
+def test_two_drawers_stay_two_parts_when_one_has_strays_across_the_front(monkeypatch):
+    """As above, with three opaque strays of the lower drawer scattered over the front, above
+    and beside the upper one (a drawer hidden in the cabinet in one state gathers such strays
+    in the E-step): the box of all its centres would hold the upper drawer, the box of its
+    body does not."""
+    strays = torch.tensor([[-0.4, -0.1, 0.3], [0.0, -0.1, 0.3], [0.4, -0.1, 0.3]])
+    # Planks of 17 columns: centres as dense as a real model's, for the body test's voxel.
+    lower = torch.cat([plank(-0.2, 0.2, z=-0.15, columns=17), strays])
+    blocks = [(wall(), 0), (plank(-0.2, 0.2, z=0.15, columns=17), 1), (lower, 2)]
+    slide = (np.eye(3), PULL)
+    s = stage(blocks, [slide, slide], [slide, slide])
+    assert merge_parts(s) == []
+    assert s.live_parts() == [1, 2]
+    monkeypatch.setattr(merge, "_body", lambda points, cell: points.numpy())  # every centre
+    assert [(m.part, m.into) for m in merge_parts(s)] == [(1, 2)]
+
+
 def test_a_part_its_own_motion_does_not_explain_joins_the_static_part():
     """A column of the wall read as a part with a small spurious shift: staying put explains
     its Gaussians better than its own motion does."""

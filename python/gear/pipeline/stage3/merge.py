@@ -57,8 +57,9 @@ BODY_CELLS = 2.0
 # of a door the body test joined to its other half (cabinet_tall at fast) gained 0.12-0.17.
 NO_BODY_GAIN_SHARE = 0.25
 # A part joins a sliding part only in line with it (as in stage 2): the box bounding the
-# slide's part across the slide spans the 2nd-98th percentiles of its centres (a stray Gaussian
-# does not stretch it) grown by this share of the object's radius.
+# slide's body (the largest piece of its opaque centres, the body test's) across the slide
+# spans the 2nd-98th percentiles of those centres (a stray Gaussian does not stretch it) grown
+# by this share of the object's radius.
 IN_LINE_MARGIN_RADII = 0.06
 IN_LINE_TRIM = 0.02
 # How far below a Gaussian's lowest logit a merged part's logit is set: its soft weight (e^-20)
@@ -128,7 +129,7 @@ def _next_merge(state: RefineState, kept_apart: set[frozenset[int]],
                 allowed = math.inf  # the images gave (nearly) all of this half to the other
             if costs[into] > allowed or pair in kept_apart:
                 continue
-            if into == 0 or _in_line(state, ids, k, into):
+            if into == 0 or _in_line(state, ids, k, into, cell):
                 return Merge(k, into, gain, costs[into])
     return None
 
@@ -145,10 +146,17 @@ def _body_cell(g: Gaussians) -> float:
 def _body_share(points: torch.Tensor, cell: float) -> float:
     """The share of `points` [N, 3] in their largest 26-connected piece at `cell` (1 when
     there are none or the cell is infinite)."""
+    return len(_body(points, cell)) / len(points) if len(points) else 1.0
+
+
+def _body(points: torch.Tensor, cell: float) -> np.ndarray:
+    """Those of `points` [N, 3] in their largest 26-connected piece at `cell` (all of them
+    when the cell is infinite)."""
+    points = points.numpy()
     if len(points) == 0 or not math.isfinite(cell):
-        return 1.0
-    labels = geometry.piece_labels([points.numpy()], cell)[0]
-    return float(np.bincount(labels).max() / len(labels))
+        return points
+    labels = geometry.piece_labels([points], cell)[0]
+    return points[labels == np.bincount(labels).argmax()]
 
 
 def moved_like(motion: PartMotion, k: int, j: int) -> PartMotion:
@@ -159,10 +167,14 @@ def moved_like(motion: PartMotion, k: int, j: int) -> PartMotion:
     return out
 
 
-def _in_line(state: RefineState, ids: torch.Tensor, k: int, j: int) -> bool:
+def _in_line(state: RefineState, ids: torch.Tensor, k: int, j: int, cell: float) -> bool:
     """Whether part k may join part j: always when j turns (by ε or more), else when at least
-    IN_LINE_SHARE of k's opaque centres lie in line with j's along j's slide. Two drawers of
-    a column pulled by the same travel are explained by one motion but are two parts."""
+    IN_LINE_SHARE of k's opaque centres lie in line with j's body (the largest piece of its
+    opaque centres at `cell`) along j's slide. Two drawers of a column pulled by the same
+    travel are explained by one motion but are two parts. The body, not all of j's centres:
+    a drawer hidden in the cabinet in one state is matter the E-step can give strays to, and
+    those can lie anywhere on the front (storage7 at fast: 696 opaque centres spanning both
+    columns and every row, which put every part 'in line' with the drawer)."""
     qr, qd = state.motion.motion()
     if float(quat_angle(qr[j].detach())) >= math.radians(state.config.revolute_eps_deg):
         return True
@@ -170,7 +182,7 @@ def _in_line(state: RefineState, ids: torch.Tensor, k: int, j: int) -> bool:
     direction = dq_to_rt(qr[j].detach(), qd[j].detach())[1].numpy()
     margin = IN_LINE_MARGIN_RADII * object_radius(g, object_center(g))
     share = geometry.share_in_line(solid_means(g, ids == k).numpy(),
-                                   solid_means(g, ids == j).numpy(), direction, margin,
+                                   _body(solid_means(g, ids == j), cell), direction, margin,
                                    trim=IN_LINE_TRIM)
     return share >= IN_LINE_SHARE
 
