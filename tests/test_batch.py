@@ -179,7 +179,7 @@ def test_a_killed_worker_is_retried_and_the_retry_resumes(local_ray, scenes, tmp
     assert proc.returncode == 0, out + err
     outcome = Outcome.load(run)
     assert outcome.status == "done" and outcome.attempts == 2
-    assert outcome.resumed.startswith("stage1-start iteration ")
+    assert outcome.resumed.startswith("stage1 iteration ")
     log = (run / "log.jsonl").read_text()
     assert f"took over a stale lock in {run} (left by PID {killed}" in log
     assert (run / COMPLETE).is_file() and (run / "export" / "fridge.urdf").is_file()

@@ -49,10 +49,16 @@ def scene_and_runs(tmp_path_factory) -> tuple[Path, Path, Path, Path]:
     root = tmp_path_factory.mktemp("bench_raster")
     scene = generate("fridge", root / "scene", res=24, views=3, test_views=1)
     finished = make_out_dir(root / "finished")
-    stage1 = root / "stage1"  # interrupted in stage 1 of the end state
-    payload = {"stage": "stage1-end", "iteration": 7, "models": {},
-               "current": checkpoint.gaussians_state(toy_gaussians("end"))}
+    stage1 = root / "stage1"  # interrupted in stage 1, both states in training
+    payload = {"stage": "stage1", "iteration": 7, "models": {},
+               "current": {s: checkpoint.gaussians_state(toy_gaussians(s))
+                           for s in ("start", "end")},
+               "iterations": {"start": 7, "end": 7}}
     checkpoint.save(stage1 / "checkpoints", payload)
+    # ...and as a run that trained the states one after the other left it, in the end state
+    payload = {"stage": "stage1-end", "iteration": 5, "models": {},
+               "current": checkpoint.gaussians_state(toy_gaussians("end"))}
+    checkpoint.save(root / "stage1_one_by_one" / "checkpoints", payload)
     stage3 = root / "stage3"  # stage 3 done, outputs not yet written
     payload = {"stage": "stage3-done", "iteration": 9, "models": {},
                "coarse": {"canonical": "start"},
@@ -72,6 +78,8 @@ def test_checkpoint_runs_time_the_trained_model_from_the_scene_cameras(scene_and
     for run, what, state in [(finished, "finished run", "start"),
                              (stage1, "stage1-end model at iteration 7", "end"),
                              (stage1 / "checkpoints" / checkpoint.LAST, "stage1-end", "end"),
+                             (stage1.parent / "stage1_one_by_one",
+                              "stage1-end model at iteration 5", "end"),
                              (stage3, "stage-3 model", "start")]:
         lines = bench_lines(capsys, "--checkpoint", str(run), "--scene", str(scene),
                             "--views", "2")

@@ -78,7 +78,7 @@ def outputs(out) -> tuple:
     return joints, np.load(out / "parts.npy"), (out / "gaussians_canonical.ply").read_bytes()
 
 
-@pytest.mark.parametrize("stage,iteration", [("stage1-end", 7), ("stage3", 7)])
+@pytest.mark.parametrize("stage,iteration", [("stage1", 7), ("stage3", 7)])
 def test_interrupted_run_resumes_to_the_same_result(scene, tmp_path, stage, iteration):
     config = make_config("quick", CONFIG)
     train(scene, tmp_path / "straight", config, quiet=True)
@@ -86,6 +86,29 @@ def test_interrupted_run_resumes_to_the_same_result(scene, tmp_path, stage, iter
         train(scene, tmp_path / "resumed", config, quiet=True)
     saved = torch.load(tmp_path / "resumed" / "checkpoints" / "last.pt", weights_only=False)
     assert (saved["stage"], saved["iteration"]) == (stage, iteration)
+    train(scene, tmp_path / "resumed", config, resume=True, quiet=True)
+    straight, resumed = outputs(tmp_path / "straight"), outputs(tmp_path / "resumed")
+    assert straight[0] == resumed[0]
+    assert np.array_equal(straight[1], resumed[1])
+    assert straight[2] == resumed[2]
+
+
+def test_a_checkpoint_of_the_states_trained_one_by_one_resumes_to_the_same_result(scene, tmp_path):
+    """A run that trained the two states' stage 1 one after the other checkpointed only the
+    state in training ("stage1-start" here). Resumed, that state continues from its iteration
+    and the other starts afresh beside it; as the states share nothing, the result is the
+    uninterrupted run's."""
+    config = make_config("quick", CONFIG)
+    train(scene, tmp_path / "straight", config, quiet=True)
+    with interrupted_at("stage1", 7), pytest.raises(KeyboardInterrupt):
+        train(scene, tmp_path / "resumed", config, quiet=True)
+    path = tmp_path / "resumed" / "checkpoints" / "last.pt"
+    saved = torch.load(path, weights_only=False)
+    assert saved["iterations"] == {"start": 7, "end": 7}
+    saved.update(stage="stage1-start", current=saved["current"]["start"],
+                 stage_state=saved["stage_state"]["start"])
+    del saved["iterations"]
+    torch.save(saved, path)
     train(scene, tmp_path / "resumed", config, resume=True, quiet=True)
     straight, resumed = outputs(tmp_path / "straight"), outputs(tmp_path / "resumed")
     assert straight[0] == resumed[0]

@@ -232,9 +232,9 @@ def test_sigterm_and_sighup_save_a_checkpoint(scene, tmp_path, sig):
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 130, err
-    assert "interrupted: checkpoint saved at stage1-start iteration" in err
+    assert "interrupted: checkpoint saved at stage1 iteration" in err
     saved = torch.load(out / "checkpoints" / "last.pt", weights_only=False)
-    assert saved["stage"] == "stage1-start" and saved["iteration"] >= 3
+    assert saved["stage"] == "stage1" and saved["iteration"] >= 3
     assert not (out / LOCK).exists() and not (out / COMPLETE).exists()
 
 

@@ -116,7 +116,11 @@ def trained_model(path: Path) -> tuple[list[torch.Tensor], str, str]:
     stage = str(saved["stage"])
     # Stage 1 trains the model of the state in its name; stage 3 the canonical state's.
     canonical = (saved.get("coarse") or {}).get("canonical")
-    if saved.get("current") is not None:
+    if stage == "stage1":  # both states in training: the last one's model
+        state = next(reversed(saved["current"]))
+        model = saved["current"][state]
+        what = f"stage1-{state} model at iteration {saved['iterations'][state]}"
+    elif saved.get("current") is not None:
         model = saved["current"]
         state = stage.removeprefix("stage1-") if stage.startswith("stage1-") else canonical
         what = f"{stage} model at iteration {saved['iteration']}"

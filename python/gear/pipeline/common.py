@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -12,6 +13,9 @@ import torch
 from gear.camera import Camera
 from gear.config import TrainConfig
 from gear.losses import composite, depth_log_l1, photometric
+
+if TYPE_CHECKING:
+    from gear.splats import Gaussians
 
 
 class NonFiniteLoss(RuntimeError):
@@ -85,6 +89,7 @@ class Stage:
     comes from that generator, which is checkpointed, so seeded runs resume identically."""
 
     name = "stage"
+    gaussians: Gaussians  # what the stage trains, set by each stage
 
     def __init__(self, config: TrainConfig, seed: int) -> None:
         self.config = config
@@ -99,6 +104,10 @@ class Stage:
 
     def background(self) -> torch.Tensor:
         return torch.rand(3, generator=self.generator)
+
+    def gaussian_count(self) -> int:
+        """How many Gaussians the stage trains (the log and the progress bar show it)."""
+        return len(self.gaussians)
 
     def phase(self, it: int) -> str | None:
         """The sub-phase at iteration `it` (stage 3's E/M/J), None for a stage without."""

@@ -20,7 +20,6 @@ from tqdm import tqdm
 
 from gear import checkpoint
 from gear.config import TrainConfig
-from gear.splats import Gaussians
 
 
 class RunLog:
@@ -91,10 +90,10 @@ class _Interrupt:
 
 class IterativeStage(Protocol):
     name: str
-    gaussians: Gaussians
     events: list[dict]
 
     def step(self, it: int) -> dict[str, float]: ...
+    def gaussian_count(self) -> int | dict[str, int]: ...
     def phase(self, it: int) -> str | None: ...
     def status(self) -> str | None: ...
     def snapshot(self) -> dict: ...
@@ -162,15 +161,16 @@ class Runner:
                 terms = stage.step(it)
                 self.write_events(stage)
                 if it % c.log_every == 0 or it + 1 == total:
-                    record = {"stage": stage.name, "iteration": it,
-                              "gaussians": len(stage.gaussians),
+                    count = stage.gaussian_count()
+                    record = {"stage": stage.name, "iteration": it, "gaussians": count,
                               **({"phase": phase} if phase else {}), **terms}
                     self.log.write(record)
                     postfix = " ".join(f"{k}={v:.4f}" for k, v in terms.items())
                     status = stage.status()
                     if status is not None:
                         postfix += " " + status
-                    bar.set_postfix_str(f"n={len(stage.gaussians)} {postfix}", refresh=False)
+                    n = "+".join(map(str, count.values())) if isinstance(count, dict) else count
+                    bar.set_postfix_str(f"n={n} {postfix}", refresh=False)
                 bar.update(1)
                 done = it + 1
                 if interrupt.requested:

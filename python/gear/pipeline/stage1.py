@@ -5,6 +5,7 @@ Entry point `reconstruct_states` -> `Stage1Result` (one model per state)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 from gear import checkpoint
@@ -30,6 +31,7 @@ class ReconstructState(Stage):
     ) -> None:
         super().__init__(config, seed)
         self.name = f"stage1-{state}"
+        self.state = state
         self.gaussians = gaussians
         self.views = list(views)
         self.extent = scene_extent([v.camera for v in self.views])
@@ -84,34 +86,107 @@ class Stage1Result:
         return cls({s: checkpoint.gaussians_from_state(g) for s, g in state.items()})
 
 
+class BothStates:
+    """Stage 1 of every state not yet trained, in lockstep: each iteration steps every state's
+    model, one on a worker thread, the others on the caller's. The states share nothing (own
+    Gaussians, optimiser, generator; the native ops and the rasterizer give the same bits on
+    any thread), so the models are exactly those of training them one after the other; but
+    the single-threaded torch part of one state's step runs beside the other's rasterizer,
+    which the two cores otherwise leave half idle (docs/training.md, "Both states at once").
+    A state resumed at a later iteration than the others waits until they reach it."""
+
+    name = "stage1"
+
+    def __init__(self, stages: Sequence[ReconstructState], starts: Sequence[int]) -> None:
+        self.stages = list(stages)
+        self.done = {s.state: start for s, start in zip(self.stages, starts, strict=True)}
+        self.events: list[dict] = []
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stage1")
+
+    def close(self) -> None:
+        self._worker.shutdown(wait=True)
+
+    def step(self, it: int) -> dict[str, float]:
+        due = [s for s in self.stages if self.done[s.state] <= it]
+        elsewhere = [self._worker.submit(s.step, it) for s in due[1:]]
+        try:
+            results = [due[0].step(it)] if due else []
+        finally:  # the worker's step ends before anything else happens, even on an error
+            results += [f.result() for f in elsewhere]
+        terms = {}
+        for stage, stage_terms in zip(due, results, strict=True):
+            self.done[stage.state] = it + 1
+            terms.update({f"{stage.state}/{k}": v for k, v in stage_terms.items()})
+            self.events += [{**event, "stage": stage.name} for event in stage.events]
+            stage.events.clear()
+        return terms
+
+    def gaussian_count(self) -> dict[str, int]:
+        return {s.state: len(s.gaussians) for s in self.stages}
+
+    def phase(self, it: int) -> str | None:
+        return None
+
+    def status(self) -> str | None:
+        return None
+
+    def snapshot(self) -> dict:
+        return {}
+
+    def checkpoint(self) -> dict:
+        return {"current": {s.state: checkpoint.gaussians_state(s.gaussians) for s in self.stages},
+                "stage_state": {s.state: s.state_dict() for s in self.stages},
+                "iterations": dict(self.done)}
+
+
 def reconstruct_states(views: dict[str, list], train_views: dict[str, list[TrainView]],
                        config: TrainConfig, runner: Runner, resume: dict | None) -> Stage1Result:
-    """Trains each state's model in turn from its initial Gaussians (`views`: the scene's
-    training views per state, for the initialisation), or continues from `resume`."""
+    """Trains the model of each state not finished yet (BothStates) from its initial Gaussians
+    (`views`: the scene's training views per state, for the initialisation), or continues from
+    `resume`."""
     c = config
     done = {} if resume is None else resume["models"]
-    models: dict[str, Gaussians] = {}
+    models = {s: checkpoint.gaussians_from_state(done[s]) for s in STATES if s in done}
+    stages, starts = [], []
     for index, state in enumerate(STATES):
-        name = f"stage1-{state}"
-        if state in done:
-            models[state] = checkpoint.gaussians_from_state(done[state])
+        if state in models:
             continue
-        runner.finished("models", Stage1Result(models).to_checkpoint())  # saved beside it
-        start = 0
-        if resume is not None and resume["stage"] == name:
-            g = checkpoint.gaussians_from_state(resume["current"])
-            start = resume["iteration"]
-        else:
-            g = initial_gaussians(views[state], c, c.seed + index)
+        saved = _progress(resume, state)
+        if saved is None:
+            g, start = initial_gaussians(views[state], c, c.seed + index), 0
             add_sh(g, c.sh_degree, c.lr_sh)
-            runner.log.say(f"{name}: {len(g)} initial Gaussians")
+            runner.log.say(f"stage1-{state}: {len(g)} initial Gaussians")
+        else:
+            g, start = checkpoint.gaussians_from_state(saved[0]), saved[2]
         stage = ReconstructState(g, train_views[state], c, c.seed * 1000 + index, state)
         if start:
-            stage.load_state_dict(resume["stage_state"])
-        runner.run(stage, start, c.stage1_iterations)
-        models[state] = g
-        runner.finished("models", Stage1Result(models).to_checkpoint())
-        runner.save(f"{name}-done", c.stage1_iterations)
-    result = Stage1Result(models)
+            stage.load_state_dict(saved[1])
+        stages.append(stage)
+        starts.append(start)
+    if stages:
+        runner.finished("models", Stage1Result(models).to_checkpoint())  # saved beside them
+        together = BothStates(stages, starts)
+        try:
+            runner.run(together, min(starts), c.stage1_iterations)
+        finally:
+            together.close()
+        models.update({s.state: s.gaussians for s in stages})
+    result = Stage1Result({s: models[s] for s in STATES})
     runner.finished("models", result.to_checkpoint())
+    if stages:
+        runner.save("stage1-done", c.stage1_iterations)
     return result
+
+
+def _progress(resume: dict | None, state: str) -> tuple[dict, dict, int] | None:
+    """What `resume` holds of `state`'s stage 1 in progress: (Gaussians, stage state,
+    iteration), or None. Reads BothStates' checkpoints and those of a run that trained the
+    states one after the other (stage "stage1-<state>")."""
+    if resume is None:
+        return None
+    if resume["stage"] == BothStates.name and state in resume["current"]:
+        return (resume["current"][state], resume["stage_state"][state],
+                resume["iterations"][state])
+    if resume["stage"] == f"stage1-{state}":
+        return resume["current"], resume["stage_state"], resume["iteration"]
+    return None
