@@ -3,9 +3,11 @@ the non-finite guard and the per-stage random source (docs/architecture.md)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 import torch
@@ -81,6 +83,43 @@ def image_terms(out, view: TrainView, background: torch.Tensor, config: TrainCon
     if view.depth is not None and out.depth is not None:
         terms["depth"] = config.lambda_depth * depth_log_l1(out.depth, view.depth)
     return terms
+
+
+Item = TypeVar("Item")
+Result = TypeVar("Result")
+
+# The one worker thread of map_beside (started on first use).
+_BESIDE = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gear-beside")
+_on_worker = threading.local()
+
+
+def map_beside(work: Callable[[Item], Result], items: Sequence[Item]) -> list[Result]:
+    """[work(item) for item in items], every second item on a worker thread beside the
+    caller. The native ops (rasterizer, SSIM, deformation) release Python's lock and give the
+    same bits on any thread, so independent work (two states' steps, one step's views) comes
+    out exactly as in turn, while one item's single-threaded torch part runs beside the other's
+    multi-threaded native part, which the cores otherwise leave half idle. torch's grad mode,
+    which is per thread, is the caller's on the worker too. The caller waits for the worker's
+    items before anything else happens, even when its own raise. Called from the worker (work
+    inside work), it runs everything in turn."""
+    if len(items) < 2 or getattr(_on_worker, "active", False):
+        return [work(item) for item in items]
+    grad = torch.is_grad_enabled()
+
+    def on_worker(item: Item) -> Result:
+        _on_worker.active = True
+        with torch.set_grad_enabled(grad):
+            return work(item)
+
+    elsewhere = [_BESIDE.submit(on_worker, item) for item in items[1::2]]
+    try:
+        here = [work(item) for item in items[0::2]]
+    finally:
+        there = [f.result() for f in elsewhere]
+    results: list[Result] = []
+    for i in range(len(items)):
+        results.append(here[i // 2] if i % 2 == 0 else there[i // 2])
+    return results
 
 
 class Stage:

@@ -5,14 +5,21 @@ Entry point `reconstruct_states` -> `Stage1Result` (one model per state)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 from gear import checkpoint
 from gear.config import TrainConfig
 from gear.data.scene import STATES
 from gear.losses import opacity_binarisation
-from gear.pipeline.common import Stage, TrainView, check_finite, gaussian_lrs, image_terms, means_lr
+from gear.pipeline.common import (
+    Stage,
+    TrainView,
+    check_finite,
+    gaussian_lrs,
+    image_terms,
+    map_beside,
+    means_lr,
+)
 from gear.pipeline.runner import Runner
 from gear.splats import Densifier, Gaussians, gaussian_budget, render
 from gear.splats.init import initial_gaussians, scene_extent
@@ -88,12 +95,10 @@ class Stage1Result:
 
 class BothStates:
     """Stage 1 of every state not yet trained, in lockstep: each iteration steps every state's
-    model, one on a worker thread, the others on the caller's. The states share nothing (own
-    Gaussians, optimiser, generator; the native ops and the rasterizer give the same bits on
-    any thread), so the models are exactly those of training them one after the other; but
-    the single-threaded torch part of one state's step runs beside the other's rasterizer,
-    which the two cores otherwise leave half idle (docs/training.md, "Both states at once").
-    A state resumed at a later iteration than the others waits until they reach it."""
+    model, one beside the other (common.map_beside). The states share nothing (own Gaussians,
+    optimiser, generator), so the models are bit for bit those of training them one after the
+    other (docs/training.md, "Both states at once"). A state resumed at a later iteration than
+    the others waits until they reach it."""
 
     name = "stage1"
 
@@ -101,18 +106,10 @@ class BothStates:
         self.stages = list(stages)
         self.done = {s.state: start for s, start in zip(self.stages, starts, strict=True)}
         self.events: list[dict] = []
-        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stage1")
-
-    def close(self) -> None:
-        self._worker.shutdown(wait=True)
 
     def step(self, it: int) -> dict[str, float]:
         due = [s for s in self.stages if self.done[s.state] <= it]
-        elsewhere = [self._worker.submit(s.step, it) for s in due[1:]]
-        try:
-            results = [due[0].step(it)] if due else []
-        finally:  # the worker's step ends before anything else happens, even on an error
-            results += [f.result() for f in elsewhere]
+        results = map_beside(lambda stage: stage.step(it), due)
         terms = {}
         for stage, stage_terms in zip(due, results, strict=True):
             self.done[stage.state] = it + 1
@@ -165,11 +162,7 @@ def reconstruct_states(views: dict[str, list], train_views: dict[str, list[Train
         starts.append(start)
     if stages:
         runner.finished("models", Stage1Result(models).to_checkpoint())  # saved beside them
-        together = BothStates(stages, starts)
-        try:
-            runner.run(together, min(starts), c.stage1_iterations)
-        finally:
-            together.close()
+        runner.run(BothStates(stages, starts), min(starts), c.stage1_iterations)
         models.update({s.state: s.gaussians for s in stages})
     result = Stage1Result({s: models[s] for s in STATES})
     runner.finished("models", result.to_checkpoint())

@@ -7,11 +7,34 @@ use num_traits::Float;
 
 use super::quat::{add_scaled, conj, dot, mul, rotate, rotate_backward, scale, two, Quat, Vec3};
 
-/// The K part motions: rotation halves `qr` and dual halves `qd`.
-#[derive(Clone, Copy)]
-pub struct Motions<'a, T> {
-    pub qr: &'a [Quat<T>],
-    pub qd: &'a [Quat<T>],
+/// The K part motions: rotation halves `qr` and dual halves `qd`, with the sign each part
+/// takes against each possible leading part (worked out once per call, not per Gaussian).
+pub struct Motions<T> {
+    pub qr: Vec<Quat<T>>,
+    pub qd: Vec<Quat<T>>,
+    /// `signs[lead * K + k]`: +1 or -1, part k's quaternion sign that agrees with part
+    /// `lead`'s (q and -q are the same motion, but averaging them would cancel).
+    signs: Vec<T>,
+}
+
+impl<T: Float> Motions<T> {
+    pub fn new(qr: Vec<Quat<T>>, qd: Vec<Quat<T>>) -> Self {
+        let k = qr.len();
+        let signs = (0..k * k)
+            .map(|i| {
+                if dot(&qr[i / k], &qr[i % k]) < T::zero() {
+                    -T::one()
+                } else {
+                    T::one()
+                }
+            })
+            .collect();
+        Self { qr, qd, signs }
+    }
+
+    fn sign(&self, lead: usize, k: usize) -> T {
+        self.signs[lead * self.qr.len() + k]
+    }
 }
 
 /// Index of the first largest weight (ties go to the lowest part, as torch's argmax).
@@ -25,22 +48,12 @@ fn lead<T: Float>(weights: &[T]) -> usize {
     best
 }
 
-/// +1 or -1: part k's quaternion sign that agrees with the leading part's (q and -q are the
-/// same motion, but averaging them would cancel).
-fn sign<T: Float>(motions: &Motions<T>, lead: usize, k: usize) -> T {
-    if dot(&motions.qr[lead], &motions.qr[k]) < T::zero() {
-        -T::one()
-    } else {
-        T::one()
-    }
-}
-
 /// The sign-aligned weighted sums (rotation half, dual half).
 fn mix<T: Float>(weights: &[T], motions: &Motions<T>) -> (Quat<T>, Quat<T>) {
     let first = lead(weights);
     let (mut br, mut bd) = ([T::zero(); 4], [T::zero(); 4]);
     for (k, &w) in weights.iter().enumerate() {
-        let s = w * sign(motions, first, k);
+        let s = w * motions.sign(first, k);
         br = add_scaled(&br, s, &motions.qr[k]);
         bd = add_scaled(&bd, s, &motions.qd[k]);
     }
@@ -158,7 +171,7 @@ pub fn backward_one<T: Float>(
     let first = lead(weights);
     let mut motion_grads = out.motions;
     for (k, (&w, gw)) in weights.iter().zip(out.weights.iter_mut()).enumerate() {
-        let s = sign(motions, first, k);
+        let s = motions.sign(first, k);
         *gw = s * (dot(&g_br, &motions.qr[k]) + dot(&g_bd, &motions.qd[k]));
         if let Some(m) = motion_grads.as_deref_mut() {
             let parts = m.len() / 2;

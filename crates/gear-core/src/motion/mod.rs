@@ -20,7 +20,6 @@ use num_traits::Float;
 use rayon::prelude::*;
 
 use self::blend::{backward_one, forward_one, GradientsOne, Motions};
-use self::quat::Quat;
 use crate::error::{check_finite, invalid, Result};
 use crate::splat::cpu::global_pool;
 
@@ -133,13 +132,13 @@ impl<T: Real> DeformInput<'_, T> {
         buffer
     }
 
-    fn motions(&self) -> (Vec<Quat<T>>, Vec<Quat<T>>) {
+    fn motions(&self) -> Motions<T> {
         let quats = |flat: &[T]| {
             flat.chunks_exact(4)
                 .map(|q| [q[0], q[1], q[2], q[3]])
                 .collect()
         };
-        (quats(self.qr), quats(self.qd))
+        Motions::new(quats(self.qr), quats(self.qd))
     }
 }
 
@@ -182,8 +181,7 @@ fn in_chunks<R: Send>(
 pub fn forward<T: Real>(input: &DeformInput<'_, T>) -> Result<Deformed<T>> {
     input.validate()?;
     let k = input.parts();
-    let (qr, qd) = input.motions();
-    let motions = Motions { qr: &qr, qd: &qd };
+    let motions = input.motions();
     let chunks = in_chunks(input.len(), |range| {
         let mut means = Vec::with_capacity(3 * range.len());
         let mut quats = Vec::with_capacity(4 * range.len());
@@ -232,8 +230,7 @@ pub fn backward<T: Real>(
     check_finite("deform grad_means", grad_means)?;
     check_finite("deform grad_quats", grad_quats)?;
     let k = input.parts();
-    let (qr, qd) = input.motions();
-    let motions = Motions { qr: &qr, qd: &qd };
+    let motions = input.motions();
     let chunks = in_chunks(input.len(), |range| {
         let n = range.len();
         let mut g = DeformGradients {

@@ -2,7 +2,7 @@
 //! (a vanishing mix, opposite quaternion signs, half turns) and the chunked driver against one
 //! Gaussian at a time.
 
-use super::blend::{backward_one, forward_one, GradientsOne, Motions};
+use super::blend::{backward_one, forward_one, GradientsOne};
 use super::*;
 
 /// A named input array of a scene, for the finite-difference loop.
@@ -315,8 +315,7 @@ fn chunks_match_one_gaussian_at_a_time() {
     let gq: Vec<f32> = (0..q.len()).map(|i| (i % 5) as f32 * 0.1).collect();
     let out = forward(&input).unwrap();
     let g = backward(&input, &gm, &gq, true).unwrap();
-    let (qr, qd) = input.motions();
-    let motions = Motions { qr: &qr, qd: &qd };
+    let motions = input.motions();
     let mut total = vec![[0.0f32; 4]; 2 * k];
     for start in (0..n).step_by(CHUNK) {
         let mut chunk = vec![[0.0f32; 4]; 2 * k];

@@ -12,9 +12,8 @@ def motion_step(state: RefineState, it: int) -> dict[str, float]:
     Gaussians keeps them from absorbing the motion's error, and saves the anchor render and
     their backward (docs/method.md, "Stage 3: M-step")."""
     drawn = [state.target_view()[1:] for _ in range(state.config.m_step_views)]
-    terms = state.held_image_terms(state.motion, *zip(*drawn, strict=True))
-    check_finite(terms, state.name, it)
     state.motion_optimizer.zero_grad(set_to_none=True)
-    sum(terms.values()).backward()
+    terms = state.held_image_step(state.motion, *zip(*drawn, strict=True))
+    check_finite(terms, state.name, it)
     state.motion_optimizer.step()
     return {k: v.item() for k, v in terms.items()}

@@ -5,7 +5,7 @@ posed under hard assignment (docs/method.md, "Stage 3")."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -13,7 +13,7 @@ from gear.articulation import PartMotion
 from gear.config import TrainConfig
 from gear.geometry import nearest_neighbours
 from gear.kinematics import dq_to_rt, quat_mul, quat_rotate
-from gear.pipeline.common import Stage, TrainView, gaussian_lrs, image_terms
+from gear.pipeline.common import Stage, TrainView, gaussian_lrs, image_terms, map_beside
 from gear.splats import Densifier, Gaussians, gaussian_budget, render
 from gear.splats.init import scene_extent
 from gear.splats.sh import SH_PARAM
@@ -186,15 +186,43 @@ class RefineState(Stage):
         fine-tuning all judge a motion this way."""
         held = self.held()
         pose = held.pose(*motion.motion(1.0))  # once for every view
-        terms: dict[str, torch.Tensor] = {}
-        for view, bg in zip(views, backgrounds, strict=True):
-            # The static part comes first and never moves (part 0's motion is the identity):
-            # its Gaussians pass no gradient, and the rasterizer's backward skips their work.
-            out = render(held, view.camera, bg, pose=pose, depth=view.depth is not None,
-                         held=held.counts[0])
-            for name, value in image_terms(out, view, bg, self.config).items():
-                terms[name] = terms.get(name, 0.0) + value / len(views)
-        return terms
+        pairs = list(zip(views, backgrounds, strict=True))
+        # Without gradients the views render beside each other (map_beside); a graph that
+        # torch's autograd builds on two threads would order its sums by thread.
+        per_view = (map_beside if not torch.is_grad_enabled() else _in_turn)(
+            lambda pair: self._held_view_terms(held, pose, *pair, len(views)), pairs)
+        return _summed(per_view)
+
+    def held_image_step(self, motion: PartMotion, views: Sequence[TrainView],
+                        backgrounds: Sequence[torch.Tensor]) -> dict[str, torch.Tensor]:
+        """held_image_terms, with the gradient of their sum added to `motion`'s tensors: each
+        view is rendered and differentiated on its own, beside the others (map_beside), and
+        its gradients in the posed Gaussians are summed last view first, as torch's autograd
+        adds them up in one graph of all the views, then passed through the posing once: the
+        motion's gradients are bit for bit those of backward() on held_image_terms."""
+        held = self.held()
+        pose = held.pose(*motion.motion(1.0))
+
+        def view_step(pair: tuple[TrainView, torch.Tensor]) -> tuple[dict, tuple]:
+            leaves = tuple(p.detach().requires_grad_() for p in pose)
+            terms = self._held_view_terms(held, leaves, *pair, len(views))
+            return terms, torch.autograd.grad(sum(terms.values()), leaves)
+
+        per_view = map_beside(view_step, list(zip(views, backgrounds, strict=True)))
+        grads = [sum(g[1][i] for g in reversed(per_view)) for i in range(len(pose))]
+        torch.autograd.backward(pose, grads)
+        return _summed([terms for terms, _ in per_view])
+
+    def _held_view_terms(self, held: HeldModel, pose: tuple[torch.Tensor, torch.Tensor],
+                         view: TrainView, bg: torch.Tensor, count: int) -> dict[str, torch.Tensor]:
+        """One view's image terms of the held model at `pose`, divided by the `count` views
+        they are averaged over."""
+        # The static part comes first and never moves (part 0's motion is the identity): its
+        # Gaussians pass no gradient, and the rasterizer's backward skips their work.
+        out = render(held, view.camera, bg, pose=pose, depth=view.depth is not None,
+                     held=held.counts[0])
+        terms = image_terms(out, view, bg, self.config)
+        return {name: value / count for name, value in terms.items()}
 
     def live_parts(self) -> list[int]:
         """The movable parts some Gaussian belongs to (argmax of its logits)."""
@@ -215,3 +243,16 @@ class RefineState(Stage):
             self.gaussians, it + 1, c, self.extent, c.stage3_densify_until,
             self.phase(it + 1) != "M", self.generator,
         )
+
+
+def _in_turn(work: Callable, items: list) -> list:
+    return [work(item) for item in items]
+
+
+def _summed(per_view: Sequence[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Each term summed over the views, in their order."""
+    terms: dict[str, torch.Tensor] = {}
+    for view_terms in per_view:
+        for name, value in view_terms.items():
+            terms[name] = terms.get(name, 0.0) + value
+    return terms
