@@ -116,10 +116,7 @@ def map_beside(work: Callable[[Item], Result], items: Sequence[Item]) -> list[Re
         here = [work(item) for item in items[0::2]]
     finally:
         there = [f.result() for f in elsewhere]
-    results: list[Result] = []
-    for i in range(len(items)):
-        results.append(here[i // 2] if i % 2 == 0 else there[i // 2])
-    return results
+    return [here[i // 2] if i % 2 == 0 else there[i // 2] for i in range(len(items))]
 
 
 class Stage:

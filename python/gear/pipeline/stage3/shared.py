@@ -5,7 +5,7 @@ posed under hard assignment (docs/method.md, "Stage 3")."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 
@@ -187,11 +187,15 @@ class RefineState(Stage):
         held = self.held()
         pose = held.pose(*motion.motion(1.0))  # once for every view
         pairs = list(zip(views, backgrounds, strict=True))
+
+        def view_terms(pair: tuple[TrainView, torch.Tensor]) -> dict[str, torch.Tensor]:
+            return self._held_view_terms(held, pose, *pair, len(views))
+
         # Without gradients the views render beside each other (map_beside); a graph that
         # torch's autograd builds on two threads would order its sums by thread.
-        per_view = (map_beside if not torch.is_grad_enabled() else _in_turn)(
-            lambda pair: self._held_view_terms(held, pose, *pair, len(views)), pairs)
-        return _summed(per_view)
+        if torch.is_grad_enabled():
+            return _summed([view_terms(pair) for pair in pairs])
+        return _summed(map_beside(view_terms, pairs))
 
     def held_image_step(self, motion: PartMotion, views: Sequence[TrainView],
                         backgrounds: Sequence[torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -243,10 +247,6 @@ class RefineState(Stage):
             self.gaussians, it + 1, c, self.extent, c.stage3_densify_until,
             self.phase(it + 1) != "M", self.generator,
         )
-
-
-def _in_turn(work: Callable, items: list) -> list:
-    return [work(item) for item in items]
 
 
 def _summed(per_view: Sequence[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
