@@ -119,18 +119,39 @@ def map_beside(work: Callable[[Item], Result], items: Sequence[Item]) -> list[Re
     return [here[i // 2] if i % 2 == 0 else there[i // 2] for i in range(len(items))]
 
 
-class Stage:
+class Iterating:
+    """What the runner asks of an iterative stage beside its steps, as a stage without
+    sub-phases answers it; and its log events."""
+
+    name = "stage"
+
+    def __init__(self) -> None:
+        self.events: list[dict] = []  # densify / reset / classification events for the log
+
+    def phase(self, it: int) -> str | None:
+        """The sub-phase at iteration `it` (stage 3's E/M/J), None for a stage without."""
+        return None
+
+    def status(self) -> str | None:
+        """A few words for the progress bar, beside the loss terms."""
+        return None
+
+    def snapshot(self) -> dict:
+        """What the log records at each phase change."""
+        return {}
+
+
+class Stage(Iterating):
     """What a stage's per-iteration object shares: its config, its log events and its own
     torch.Generator. Every random draw of a stage (view choice, background, split offsets)
     comes from that generator, which is checkpointed, so seeded runs resume identically."""
 
-    name = "stage"
     gaussians: Gaussians  # what the stage trains, set by each stage
 
     def __init__(self, config: TrainConfig, seed: int) -> None:
+        super().__init__()
         self.config = config
         self.generator = torch.Generator().manual_seed(seed)
-        self.events: list[dict] = []  # densify / reset / classification events for the log
 
     def pick_index(self, count: int) -> int:
         return int(torch.randint(count, (1,), generator=self.generator))
@@ -144,15 +165,3 @@ class Stage:
     def gaussian_count(self) -> int:
         """How many Gaussians the stage trains (the log and the progress bar show it)."""
         return len(self.gaussians)
-
-    def phase(self, it: int) -> str | None:
-        """The sub-phase at iteration `it` (stage 3's E/M/J), None for a stage without."""
-        return None
-
-    def status(self) -> str | None:
-        """A few words for the progress bar, beside the loss terms."""
-        return None
-
-    def snapshot(self) -> dict:
-        """What the log records at each phase change."""
-        return {}

@@ -12,6 +12,7 @@ from gear.config import TrainConfig
 from gear.data.scene import STATES
 from gear.losses import opacity_binarisation
 from gear.pipeline.common import (
+    Iterating,
     Stage,
     TrainView,
     check_finite,
@@ -93,7 +94,7 @@ class Stage1Result:
         return cls({s: checkpoint.gaussians_from_state(g) for s, g in state.items()})
 
 
-class BothStates:
+class BothStates(Iterating):
     """Stage 1 of every state not yet trained, in lockstep: each iteration steps every state's
     model, one beside the other (common.map_beside). The states share nothing (own Gaussians,
     optimiser, generator), so the models are bit for bit those of training them one after the
@@ -103,9 +104,9 @@ class BothStates:
     name = "stage1"
 
     def __init__(self, stages: Sequence[ReconstructState], starts: Sequence[int]) -> None:
+        super().__init__()
         self.stages = list(stages)
         self.done = {s.state: start for s, start in zip(self.stages, starts, strict=True)}
-        self.events: list[dict] = []
 
     def step(self, it: int) -> dict[str, float]:
         due = [s for s in self.stages if self.done[s.state] <= it]
@@ -120,15 +121,6 @@ class BothStates:
 
     def gaussian_count(self) -> dict[str, int]:
         return {s.state: len(s.gaussians) for s in self.stages}
-
-    def phase(self, it: int) -> str | None:
-        return None
-
-    def status(self) -> str | None:
-        return None
-
-    def snapshot(self) -> dict:
-        return {}
 
     def checkpoint(self) -> dict:
         return {"current": {s.state: checkpoint.gaussians_state(s.gaussians) for s in self.stages},
