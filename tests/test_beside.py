@@ -10,7 +10,7 @@ import torch
 
 from gear.articulation import PartMotion
 from gear.config import make_config
-from gear.pipeline.common import map_beside
+from gear.pipeline.common import in_turn, map_beside
 from gear.pipeline.stage3 import Refine
 from stage3_scenes import grid_gaussians, plank, rot_z, views_of, wall
 
@@ -46,6 +46,13 @@ def test_an_error_on_either_thread_reaches_the_caller_after_both_finish():
     with pytest.raises(ValueError, match="worker item"):
         map_beside(work, [0, 1, 2])
     assert sorted(finished) == [0, 2]
+
+
+def test_inside_in_turn_everything_runs_on_the_calling_thread():
+    with in_turn():
+        names = map_beside(lambda _: threading.current_thread().name, [0, 1, 2])
+    assert set(names) == {threading.current_thread().name}
+    assert len(set(map_beside(lambda _: threading.current_thread().name, [0, 1]))) == 2
 
 
 def test_work_inside_work_runs_in_turn():

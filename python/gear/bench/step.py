@@ -8,7 +8,9 @@ RUN is only read. Times are wall milliseconds per iteration (the median over the
 process CPU time (every thread: the rasterizer's and torch's), which is what compares on a
 shared machine. The split comes from torch's profiler: the rasterizer's autograd function
 (forward and backward), the optimisers' steps, and the rest of the iteration (losses, posing,
-KNN, densification statistics, Python).
+KNN, densification statistics, Python). The profiler sees only the thread it runs on, so the
+work that training runs beside the caller (the M-step's views: pipeline.common.map_beside)
+runs in turn here: the phases are timed without that overlap.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from gear.config import TrainConfig
 from gear.data import load_scene
 from gear.data.scene import STATES
 from gear.device import limit_torch_threads
-from gear.pipeline.common import Stage, TrainView
+from gear.pipeline.common import Stage, TrainView, in_turn
 from gear.pipeline.stage1 import ReconstructState, Stage1Result
 from gear.pipeline.stage2 import Stage2Result
 from gear.pipeline.stage3.refine import Refine, refine_state, resumed_refine_state
@@ -121,7 +123,13 @@ def stage3_state(saved: dict, models: dict, coarse: Stage2Result,
 
 
 def time_phase(name: str, stage: Stage, it: int, steps: int, warmup: int) -> PhaseTiming:
-    """Iteration `it` of `stage` run warmup + steps times; the medians of the timed ones."""
+    """Iteration `it` of `stage` run warmup + steps times (in turn: see the module's doc); the
+    medians of the timed ones."""
+    with in_turn():
+        return _timed_phase(name, stage, it, steps, warmup)
+
+
+def _timed_phase(name: str, stage: Stage, it: int, steps: int, warmup: int) -> PhaseTiming:
     for _ in range(warmup):
         stage.step(it)
     walls, cpus, forwards, backwards, calls, optimizers = [], [], [], [], [], []

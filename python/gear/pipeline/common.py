@@ -3,8 +3,9 @@ the non-finite guard and the per-stage random source (docs/architecture.md)."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, TypeVar
@@ -101,7 +102,7 @@ def map_beside(work: Callable[[Item], Result], items: Sequence[Item]) -> list[Re
     multi-threaded native part, which the cores otherwise leave half idle. torch's grad mode,
     which is per thread, is the caller's on the worker too. The caller waits for the worker's
     items before anything else happens, even when its own raise. Called from the worker (work
-    inside work), it runs everything in turn."""
+    inside work), or inside `in_turn()`, it runs everything in turn."""
     if len(items) < 2 or getattr(_on_worker, "active", False):
         return [work(item) for item in items]
     grad = torch.is_grad_enabled()
@@ -117,6 +118,18 @@ def map_beside(work: Callable[[Item], Result], items: Sequence[Item]) -> list[Re
     finally:
         there = [f.result() for f in elsewhere]
     return [here[i // 2] if i % 2 == 0 else there[i // 2] for i in range(len(items))]
+
+
+@contextlib.contextmanager
+def in_turn() -> Iterator[None]:
+    """Inside it, map_beside runs every item on the calling thread, in turn (same results): for
+    a profiler that sees only the thread it was started on."""
+    before = getattr(_on_worker, "active", False)
+    _on_worker.active = True
+    try:
+        yield
+    finally:
+        _on_worker.active = before
 
 
 class Iterating:
