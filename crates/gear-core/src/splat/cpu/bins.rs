@@ -167,8 +167,15 @@ pub(super) struct Bins {
 }
 
 impl Bins {
+    /// Entries in the tile lists.
     pub fn pairs(&self) -> usize {
         self.entries.len()
+    }
+
+    /// Pairs numbered: those of every Gaussian (more than the entries where some tiles'
+    /// lists were left out, see [`bin_over`]).
+    pub fn pair_count(&self) -> usize {
+        self.pair_offsets[self.len] as usize
     }
 
     /// The list range of tile `t`.
@@ -179,6 +186,11 @@ impl Bins {
     /// The pair numbers of Gaussian `g`.
     pub fn pairs_of(&self, g: usize) -> std::ops::Range<usize> {
         self.pair_offsets[g] as usize..self.pair_offsets[g + 1] as usize
+    }
+
+    /// Frees the prepared projections (for lists kept only to be merged: [`bin_over`]).
+    pub fn drop_projections(&mut self) {
+        PREPARED.keep(std::mem::take(&mut self.prepared));
     }
 
     /// Bytes held by the lists and the per-Gaussian arrays.
@@ -226,9 +238,9 @@ struct Chunk<'a> {
 }
 
 with_avx2!(
-    /// Projects Gaussians `first..first + chunk.len()` and returns their pairs, Gaussian by
-    /// Gaussian.
-    fn bin_chunk(gaussians: &Gaussians, first: usize, chunk: Chunk, view: &View, grid: Grid) -> Vec<[u32; 2]> =
+    /// Projects Gaussians `first..first + chunk.len()` and returns the pairs of those from
+    /// `from` on, Gaussian by Gaussian.
+    fn bin_chunk(gaussians: &Gaussians, first: usize, chunk: Chunk, view: &View, grid: Grid, from: usize) -> Vec<[u32; 2]> =
         bin_chunk_body
 );
 
@@ -239,6 +251,7 @@ fn bin_chunk_body(
     chunk: Chunk,
     view: &View,
     grid: Grid,
+    from: usize,
 ) -> Vec<[u32; 2]> {
     let mut pairs = Vec::with_capacity(2 * chunk.counts.len());
     let blocks = chunk
@@ -250,7 +263,7 @@ fn bin_chunk_body(
         *prepared = Prepared::new(gaussians, first + b * BLOCK, view);
         let p = prepared.project(view);
         for (i, (splat, count)) in splats.iter_mut().zip(counts.iter_mut()).enumerate() {
-            if p.valid[i] == 0 {
+            if p.valid[i] == 0 || first + b * BLOCK + i < from {
                 continue;
             }
             let screen = p.screen(i);
@@ -263,30 +276,31 @@ fn bin_chunk_body(
     pairs
 }
 
-/// Projects and bins `gaussians`; call inside the executor's thread pool.
-///
-/// Everything per Gaussian runs in index order (parallel, streaming through memory); only the
-/// final scatter of the pairs into the tile lists walks the Gaussians in depth order.
-pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
-    let view = View::new(camera);
-    let (width, height) = (camera.width, camera.height);
-    let tiles = [width.div_ceil(TILE), height.div_ceil(TILE)];
-    let grid = Grid {
-        tiles_x: tiles[0],
-        width,
-        height,
-    };
+/// What projecting Gaussians `from..` gives, in arrays over all the Gaussians (those before
+/// `from` keep defaults, but for the prepared projections of `from`'s block of eight).
+struct Projected {
+    prepared: Vec<Prepared>,
+    splats: Vec<Entry>,
+    /// Pairs of each Gaussian.
+    counts: Vec<u32>,
+    /// (tile, rows) of Gaussians `from..`, Gaussian by Gaussian.
+    pairs: Vec<[u32; 2]>,
+}
+
+/// Projects Gaussians `from..` in parallel and lists their pairs; call inside the executor's
+/// thread pool.
+fn project_from(gaussians: &Gaussians, view: &View, grid: Grid, from: usize) -> Projected {
     let n = gaussians.len();
-    let channels = gaussians.channels;
     let mut prepared = PREPARED.take(n.div_ceil(BLOCK), Prepared::default());
     let mut splats = SPLATS.take(n, Entry::default());
     let mut counts = vec![0u32; n];
     // Chunks of Gaussians: few enough for little overhead, enough to balance the threads.
     let chunk = 128 * BLOCK;
-    let chunk_pairs: Vec<Vec<[u32; 2]>> = prepared
+    let skip = from / BLOCK * BLOCK;
+    let chunk_pairs: Vec<Vec<[u32; 2]>> = prepared[skip / BLOCK..]
         .par_chunks_mut(chunk / BLOCK)
-        .zip(splats.par_chunks_mut(chunk))
-        .zip(counts.par_chunks_mut(chunk))
+        .zip(splats[skip..].par_chunks_mut(chunk))
+        .zip(counts[skip..].par_chunks_mut(chunk))
         .enumerate()
         .map(|(c, ((prepared, splats), counts))| {
             let out = Chunk {
@@ -294,47 +308,136 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
                 splats,
                 counts,
             };
-            bin_chunk(gaussians, c * chunk, out, &view, grid)
+            bin_chunk(gaussians, skip + c * chunk, out, view, grid, from)
         })
         .collect();
     let mut pairs = PAIRS.take(0, [0, 0]);
     for chunk in &chunk_pairs {
         pairs.extend_from_slice(chunk);
     }
-    let mut pair_offsets = vec![0u32; n + 1];
-    for (i, &count) in counts.iter().enumerate() {
-        pair_offsets[i + 1] = pair_offsets[i] + count;
+    Projected {
+        prepared,
+        splats,
+        counts,
+        pairs,
     }
+}
 
-    let tile_count = (tiles[0] * tiles[1]) as usize;
-    let mut tile_offsets = vec![0u32; tile_count + 1];
-    for &[t, _] in &pairs {
-        tile_offsets[t as usize + 1] += 1;
+/// Gaussian g's first pair number at [g], after `head` (the offsets of the Gaussians before
+/// those counted in `counts[head.len() - 1..]`).
+fn pair_offsets(head: &[u32], counts: &[u32]) -> Vec<u32> {
+    let mut offsets = Vec::with_capacity(counts.len() + 1);
+    offsets.extend_from_slice(head);
+    for &count in &counts[head.len() - 1..] {
+        offsets.push(offsets.last().unwrap() + count);
+    }
+    offsets
+}
+
+/// Tile t's list range at [t]..[t + 1], for lists of `pairs`.
+fn tile_offsets(pairs: &[[u32; 2]], tile_count: usize) -> Vec<u32> {
+    let mut offsets = vec![0u32; tile_count + 1];
+    for &[t, _] in pairs {
+        offsets[t as usize + 1] += 1;
     }
     for t in 0..tile_count {
-        tile_offsets[t + 1] += tile_offsets[t];
+        offsets[t + 1] += offsets[t];
     }
-    let mut lists = Lists {
-        entries: ENTRIES.take(pairs.len(), Entry::default()),
-        features: ENTRY_FEATURES.take(pairs.len() * channels, 0.0),
-        pairs: ENTRY_PAIRS.take(pairs.len(), 0),
-    };
-    lists.fill(&tile_offsets, &pairs, &pair_offsets, &splats, gaussians);
+    offsets
+}
+
+impl Grid {
+    fn new(camera: &Camera) -> Self {
+        Grid {
+            tiles_x: camera.width.div_ceil(TILE),
+            width: camera.width,
+            height: camera.height,
+        }
+    }
+
+    fn tiles_y(&self) -> u32 {
+        self.height.div_ceil(TILE)
+    }
+
+    fn tile_count(&self) -> usize {
+        (self.tiles_x * self.tiles_y()) as usize
+    }
+}
+
+/// Projects and bins `gaussians`; call inside the executor's thread pool.
+///
+/// Everything per Gaussian runs in index order (parallel, streaming through memory); only the
+/// final scatter of the pairs into the tile lists walks the Gaussians in depth order.
+pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
+    let grid = Grid::new(camera);
+    let channels = gaussians.channels;
+    let projected = project_from(gaussians, &View::new(camera), grid, 0);
+    let pair_offsets = pair_offsets(&[0], &projected.counts);
+    let tile_offsets = tile_offsets(&projected.pairs, grid.tile_count());
+    let mut lists = Lists::take(projected.pairs.len(), channels);
+    lists.fill(&tile_offsets, &projected, &pair_offsets, gaussians, 0);
     lists.sort_by_depth(&tile_offsets, channels);
-    SPLATS.keep(splats);
-    PAIRS.keep(pairs);
+    SPLATS.keep(projected.splats);
+    PAIRS.keep(projected.pairs);
     Bins {
-        tiles_x: tiles[0],
-        tiles_y: tiles[1],
+        tiles_x: grid.tiles_x,
+        tiles_y: grid.tiles_y(),
         channels,
         tile_offsets,
         entries: lists.entries,
         entry_features: lists.features,
         pair_offsets,
         entry_pairs: lists.pairs,
-        prepared,
-        len: n,
+        prepared: projected.prepared,
+        len: gaussians.len(),
     }
+}
+
+/// The bins of `gaussians` whose first `base.len` are the Gaussians `base` binned, seen by the
+/// same camera: only the others are projected and binned, and only the tiles they reach get
+/// lists (each the merge of `base`'s list and theirs, as [`bin`] orders it: by depth, ties
+/// by index); the other tiles' lists are left empty. Also returns which tiles got lists.
+/// The prepared projections of `base`'s Gaussians are not made (but for those sharing a
+/// block of eight with the others): nothing may ask for their gradients.
+pub(super) fn bin_over(base: &Bins, gaussians: &Gaussians, camera: &Camera) -> (Bins, Vec<bool>) {
+    let grid = Grid::new(camera);
+    let channels = gaussians.channels;
+    let from = base.len;
+    let projected = project_from(gaussians, &View::new(camera), grid, from);
+    let pair_offsets = pair_offsets(&base.pair_offsets, &projected.counts);
+    let tile_count = grid.tile_count();
+    let own_offsets = tile_offsets(&projected.pairs, tile_count);
+    let mut own = Lists::take(projected.pairs.len(), channels);
+    own.fill(&own_offsets, &projected, &pair_offsets, gaussians, from);
+    own.sort_by_depth(&own_offsets, channels);
+    let touched: Vec<bool> = own_offsets.windows(2).map(|w| w[1] > w[0]).collect();
+    let mut tile_offsets = vec![0u32; tile_count + 1];
+    for t in 0..tile_count {
+        let len = if touched[t] {
+            base.range(t).len() as u32 + own_offsets[t + 1] - own_offsets[t]
+        } else {
+            0
+        };
+        tile_offsets[t + 1] = tile_offsets[t] + len;
+    }
+    let mut lists = Lists::take(tile_offsets[tile_count] as usize, channels);
+    lists.merge(&tile_offsets, base, &own, &own_offsets);
+    own.keep();
+    SPLATS.keep(projected.splats);
+    PAIRS.keep(projected.pairs);
+    let bins = Bins {
+        tiles_x: grid.tiles_x,
+        tiles_y: grid.tiles_y(),
+        channels,
+        tile_offsets,
+        entries: lists.entries,
+        entry_features: lists.features,
+        pair_offsets,
+        entry_pairs: lists.pairs,
+        prepared: projected.prepared,
+        len: gaussians.len(),
+    };
+    (bins, touched)
 }
 
 /// The tile lists under construction: entry e of every array belongs to the same pair.
@@ -347,23 +450,42 @@ struct Lists {
 }
 
 impl Lists {
-    /// Scatters the pairs to their tiles walking the Gaussians in index order, so that every
-    /// read streams through memory (a walk in depth order gathers each Gaussian from a random
-    /// place, and cost most of the binning). Each list comes out in index order.
+    /// Lists for `pairs` entries of `channels` features, in kept buffers.
+    fn take(pairs: usize, channels: usize) -> Self {
+        Lists {
+            entries: ENTRIES.take(pairs, Entry::default()),
+            features: ENTRY_FEATURES.take(pairs * channels, 0.0),
+            pairs: ENTRY_PAIRS.take(pairs, 0),
+        }
+    }
+
+    /// Returns the buffers to the kept ones.
+    fn keep(self) {
+        ENTRIES.keep(self.entries);
+        ENTRY_FEATURES.keep(self.features);
+        ENTRY_PAIRS.keep(self.pairs);
+    }
+
+    /// Scatters the pairs of Gaussians `from..` to their tiles walking the Gaussians in index
+    /// order, so that every read streams through memory (a walk in depth order gathers each
+    /// Gaussian from a random place, and cost most of the binning). Each list comes out in
+    /// index order.
     fn fill(
         &mut self,
         tile_offsets: &[u32],
-        pairs: &[[u32; 2]],
+        projected: &Projected,
         pair_offsets: &[u32],
-        splats: &[Entry],
         gaussians: &Gaussians,
+        from: usize,
     ) {
         let channels = gaussians.channels;
+        // `projected.pairs` starts at Gaussian `from`'s first pair.
+        let first_pair = pair_offsets[from] as usize;
         let mut cursor = tile_offsets[..tile_offsets.len() - 1].to_vec();
-        for (g, splat) in splats.iter().enumerate() {
+        for (g, splat) in projected.splats.iter().enumerate().skip(from) {
             let features = &gaussians.features[g * channels..(g + 1) * channels];
             for pair in pair_offsets[g] as usize..pair_offsets[g + 1] as usize {
-                let [t, rows] = pairs[pair];
+                let [t, rows] = projected.pairs[pair - first_pair];
                 let e = cursor[t as usize] as usize;
                 cursor[t as usize] += 1;
                 self.entries[e] = Entry { rows, ..*splat };
@@ -371,6 +493,51 @@ impl Lists {
                 self.features[e * channels..(e + 1) * channels].copy_from_slice(features);
             }
         }
+    }
+
+    /// Fills each tile's list (ranges `tile_offsets`, empty or as long as both) with the
+    /// merge of `base`'s list and `own`'s (ranges `own_offsets`), both in depth order: by
+    /// depth, `base`'s entries first on ties (their Gaussians come first). In parallel over
+    /// the tiles.
+    fn merge(&mut self, tile_offsets: &[u32], base: &Bins, own: &Lists, own_offsets: &[u32]) {
+        let channels = base.channels;
+        let lengths: Vec<usize> = tile_offsets
+            .windows(2)
+            .map(|w| (w[1] - w[0]) as usize)
+            .collect();
+        let entries = split_by_lengths(&mut self.entries, &lengths, 1);
+        let features = split_by_lengths(&mut self.features, &lengths, channels);
+        let pairs = split_by_lengths(&mut self.pairs, &lengths, 1);
+        entries
+            .into_par_iter()
+            .zip(features)
+            .zip(pairs)
+            .enumerate()
+            .filter(|(_, ((entries, _), _))| !entries.is_empty())
+            .for_each(|(t, ((entries, features), pairs))| {
+                let from_base = base.range(t);
+                let from_own = own_offsets[t] as usize..own_offsets[t + 1] as usize;
+                let (mut b, mut o) = (from_base.start, from_own.start);
+                for e in 0..entries.len() {
+                    let take_base = o == from_own.end
+                        || (b < from_base.end
+                            && base.entries[b].z.to_bits() <= own.entries[o].z.to_bits());
+                    let (list, k) = if take_base {
+                        b += 1;
+                        (
+                            (&base.entries, &base.entry_features, &base.entry_pairs),
+                            b - 1,
+                        )
+                    } else {
+                        o += 1;
+                        ((&own.entries, &own.features, &own.pairs), o - 1)
+                    };
+                    entries[e] = list.0[k];
+                    pairs[e] = list.2[k];
+                    features[e * channels..(e + 1) * channels]
+                        .copy_from_slice(&list.1[k * channels..(k + 1) * channels]);
+                }
+            });
     }
 
     /// Sorts every tile's list (in index order) by depth, in parallel over the tiles; ties

@@ -95,6 +95,20 @@ pub(super) struct Scene<'a> {
     pub height: u32,
     pub background: &'a [f32],
     pub depth: bool,
+    /// The images of the tiles the blend does not walk, when some are given.
+    pub base: Option<Base<'a>>,
+}
+
+/// A static layer's images, whose tiles stand in for the tiles no other Gaussian reaches.
+pub(super) struct Base<'a> {
+    /// H x W x C, blended over a background of -0 (so each value is exactly the blended sum:
+    /// x + -0 = x for every x).
+    pub colour: &'a [f32],
+    pub final_t: &'a [f32],
+    /// H x W (zeros without depth).
+    pub depth: &'a [f32],
+    /// The tiles to blend; the others take the layer's pixels.
+    pub blend: &'a [bool],
 }
 
 /// Blends every tile; returns features (H x W x C), alpha, depth (H x W; zeros without depth),
@@ -170,6 +184,10 @@ fn blend_band_body(scene: &Scene, band: u32, mut out: BandImages) -> BlendCounts
         let tile = (band * bins.tiles_x + tx) as usize;
         let rows = Row::of_tile(tx, band, scene.width, scene.height);
         let range = bins.range(tile);
+        if let Some(base) = scene.base.as_ref().filter(|base| !base.blend[tile]) {
+            copy_tile(scene, base, &rows, band, tx, &mut out, range.start as u32);
+            continue;
+        }
         let tile_counts = with_channels!(
             scene.channels,
             blend_tile(scene, range, &rows, &mut acc, tx, &mut out)
@@ -177,6 +195,36 @@ fn blend_band_body(scene: &Scene, band: u32, mut out: BandImages) -> BlendCounts
         counts = counts.add(tile_counts);
     }
     counts
+}
+
+/// Stores the pixels of tile (tx, band) from `base`, over the scene's background as
+/// [`blend_tile`] stores its own: bit for bit what blending the layer's list would give. Their
+/// consumed prefix is the tile's list start (its list is empty).
+fn copy_tile(
+    scene: &Scene,
+    base: &Base,
+    rows: &[Row; TILE as usize],
+    band: u32,
+    tx: u32,
+    out: &mut BandImages,
+    start: u32,
+) {
+    let (width, channels) = (scene.width as usize, scene.channels);
+    let band_first = band as usize * TILE as usize * width;
+    for (r, row) in rows.iter().enumerate() {
+        let first = r * width + (tx * TILE) as usize;
+        for pix in first..first + row.len {
+            let t = base.final_t[band_first + pix];
+            for c in 0..channels {
+                out.features[pix * channels + c] =
+                    base.colour[(band_first + pix) * channels + c] + t * scene.background[c];
+            }
+            out.alpha[pix] = 1.0 - t;
+            out.depth[pix] = base.depth[band_first + pix];
+            out.final_t[pix] = t;
+            out.consumed[pix] = start;
+        }
+    }
 }
 
 /// A pixel row's blend state.

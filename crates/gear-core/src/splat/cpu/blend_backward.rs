@@ -40,11 +40,12 @@ impl Replay<'_> {
     }
 }
 
-/// The gradient records (pairs x stride, by pair number: Gaussian-major), written by the band
-/// threads at once.
+/// The gradient records of pairs `first..first + pairs` (pairs x stride, by pair number:
+/// Gaussian-major), written by the band threads at once.
 struct Records {
     values: *mut f32,
     stride: usize,
+    first: usize,
     pairs: usize,
 }
 
@@ -56,10 +57,11 @@ impl Records {
     /// Writes the lane sums of `sums` as the record of pair `pair`.
     #[inline(always)]
     fn write(&self, pair: usize, sums: &[Lanes]) {
-        assert!(pair < self.pairs && sums.len() >= self.stride);
+        let at = pair - self.first;
+        assert!(pair >= self.first && at < self.pairs && sums.len() >= self.stride);
         // SAFETY: in bounds (checked above); no other thread touches this record.
         let record = unsafe {
-            std::slice::from_raw_parts_mut(self.values.add(pair * self.stride), self.stride)
+            std::slice::from_raw_parts_mut(self.values.add(at * self.stride), self.stride)
         };
         for (out, v) in record.iter_mut().zip(sums) {
             *out = lane_sum(v);
@@ -71,16 +73,20 @@ impl Records {
 /// has reduced it.
 pub(super) static RECORDS: Spares<f32> = Spares::new();
 
-/// The gradient record of every (tile, entry) pair by pair number (pairs x stride), so that
-/// each Gaussian's records are contiguous; records of pairs no pixel blended are zero.
+/// The gradient record of every pair from `replay.first_pair` on, by pair number (pairs x
+/// stride, record 0 that of `first_pair`), so that each Gaussian's records are contiguous;
+/// records of pairs no pixel blended are zero.
 pub(super) fn blend_backward(scene: &Scene, replay: &Replay) -> Vec<f32> {
     let bins = scene.bins;
     let stride = replay.stride(scene.channels);
-    let mut values = RECORDS.take(bins.pairs() * stride, 0.0);
+    let first = replay.first_pair as usize;
+    let pairs = bins.pair_count() - first;
+    let mut values = RECORDS.take(pairs * stride, 0.0);
     let records = Records {
         values: values.as_mut_ptr(),
         stride,
-        pairs: bins.pairs(),
+        first,
+        pairs,
     };
     (0..bins.tiles_y)
         .into_par_iter()

@@ -14,6 +14,7 @@ mod bins;
 mod blend;
 mod blend_backward;
 mod lanes;
+mod layer;
 mod pool;
 mod project;
 mod spares;
@@ -26,16 +27,17 @@ use rayon::prelude::*;
 use rayon::ThreadPool;
 
 use self::bins::{bin, Bins};
-use self::blend::{blend, PixelState, Scene};
+use self::blend::{blend, Base, PixelState, Scene};
 use self::blend_backward::{blend_backward, Replay, GEOMETRY, RECORDS};
 use self::lanes::{array, channels, with_avx2, with_channels, LANES as BLOCK};
 use self::project::{project_backward, View};
 use self::wide::F8;
-use crate::error::Result;
+use crate::error::{GearError, Result};
 use crate::splat::types::{
     check_held, Camera, GaussianGradients, Gaussians, OutputGradients, RenderOptions, RenderOutput,
 };
 
+pub use self::layer::{forward_over, forward_over_in, StaticLayer};
 pub use self::pool::{build_pool, global_pool, thread_count};
 
 /// Side of the executor's square tiles: a row of a tile is one eight-lane SIMD row. 8x8 tiles
@@ -63,6 +65,9 @@ pub struct CpuState {
     options: RenderOptions,
     bins: Bins,
     pixels: PixelState,
+    /// Leading Gaussians whose gradients this state cannot give (those of a static layer the
+    /// forward was drawn over: [`forward_over`]).
+    floor: usize,
     pub stats: RasterStats,
 }
 
@@ -75,6 +80,7 @@ impl CpuState {
             height: self.camera.height,
             background: &self.options.background,
             depth: self.options.depth,
+            base: None,
         }
     }
 }
@@ -98,39 +104,49 @@ pub fn forward_in(
     camera.validate()?;
     gaussians.validate()?;
     options.validate(gaussians.channels)?;
-    pool.install(|| {
-        let bins = bin(gaussians, camera);
-        let scene = Scene {
-            bins: &bins,
-            channels: gaussians.channels,
-            width: camera.width,
-            height: camera.height,
-            background: &options.background,
-            depth: options.depth,
-        };
-        let (features, alpha, depth, pixels, counts) = blend(&scene);
-        let state_bytes =
-            (bins.bytes() + 8 * pixels.final_t.len() + pixels.blended_rows.len()) as u64;
-        let stats = RasterStats {
-            pairs: bins.pairs() as u64,
-            evaluations: counts.evaluations,
-            contributions: counts.contributions,
-            state_bytes,
-        };
-        let output = RenderOutput {
-            features,
-            alpha,
-            depth: options.depth.then_some(depth),
-        };
-        let state = CpuState {
-            camera: *camera,
-            options: options.clone(),
-            bins,
-            pixels,
-            stats,
-        };
-        Ok((output, state))
-    })
+    pool.install(|| Ok(finish(bin(gaussians, camera), camera, options, None, 0)))
+}
+
+/// Blends `bins` (over `base`'s pixels where it has them) into the output images and the
+/// state the backward needs; call inside the executor's thread pool.
+fn finish(
+    bins: Bins,
+    camera: &Camera,
+    options: &RenderOptions,
+    base: Option<Base>,
+    floor: usize,
+) -> (RenderOutput<f32>, CpuState) {
+    let scene = Scene {
+        bins: &bins,
+        channels: bins.channels,
+        width: camera.width,
+        height: camera.height,
+        background: &options.background,
+        depth: options.depth,
+        base,
+    };
+    let (features, alpha, depth, pixels, counts) = blend(&scene);
+    let state_bytes = (bins.bytes() + 8 * pixels.final_t.len() + pixels.blended_rows.len()) as u64;
+    let stats = RasterStats {
+        pairs: bins.pairs() as u64,
+        evaluations: counts.evaluations,
+        contributions: counts.contributions,
+        state_bytes,
+    };
+    let output = RenderOutput {
+        features,
+        alpha,
+        depth: options.depth.then_some(depth),
+    };
+    let state = CpuState {
+        camera: *camera,
+        options: options.clone(),
+        bins,
+        pixels,
+        floor,
+        stats,
+    };
+    (output, state)
 }
 
 /// Gradients of a loss with respect to the inputs of the forward pass that made `state`.
@@ -167,6 +183,13 @@ pub fn backward_in(
     let channels = state.bins.channels;
     grads.validate(state.camera.pixels(), channels)?;
     check_held(held, state.bins.len)?;
+    if held < state.floor {
+        return Err(GearError::InvalidInput(format!(
+            "held: a render over a static layer of {} Gaussians gives them no gradients; hold \
+             at least those (got {held})",
+            state.floor
+        )));
+    }
     let replay = Replay {
         state: &state.pixels,
         grads,
@@ -210,6 +233,7 @@ fn reduce(
         records,
         view: &view,
         held,
+        first_pair: bins.pair_offsets[held] as usize,
     };
     let mut means = vec![[0.0f32; 3]; n];
     let mut quats = vec![[0.0f32; 4]; n];
@@ -252,13 +276,15 @@ fn reduce(
     }
 }
 
-/// What every chunk of [`reduce`] reads: the lists, the pair records, the camera and how many
-/// leading Gaussians are held (no gradients).
+/// What every chunk of [`reduce`] reads: the lists, the pair records (from pair `first_pair`
+/// on, the first of the Gaussians not held), the camera and how many leading Gaussians are
+/// held (no gradients).
 struct Reduction<'a> {
     bins: &'a Bins,
     records: &'a [f32],
     view: &'a View,
     held: usize,
+    first_pair: usize,
 }
 
 with_avx2!(
@@ -297,7 +323,8 @@ fn reduce_chunk_body<const C: usize>(input: &Reduction, first: usize, out: Gradi
             let row = k * BLOCK + i;
             let features = &mut out.features[row * channels..(row + 1) * channels];
             features.fill(0.0);
-            for record in records[pairs.start * stride..pairs.end * stride].chunks_exact(stride) {
+            let own = pairs.start - input.first_pair..pairs.end - input.first_pair;
+            for record in records[own.start * stride..own.end * stride].chunks_exact(stride) {
                 let (geometry, values) = record.split_at(GEOMETRY);
                 for (sum, &v) in screen.iter_mut().zip(geometry) {
                     sum.0[i] += v;

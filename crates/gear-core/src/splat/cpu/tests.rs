@@ -388,3 +388,137 @@ fn skipping_unblended_rows_changes_no_gradient() {
         );
     }
 }
+
+/// `scene` reordered so that the Gaussians right of x = `cut` come last; returns how many
+/// come first.
+fn left_first(scene: &OwnedGaussians, cut: f32) -> (OwnedGaussians, usize) {
+    let c = scene.channels;
+    let mut order: Vec<usize> = (0..scene.means.len()).collect();
+    order.sort_by_key(|&g| scene.means[g][0] > cut);
+    let mut out = OwnedGaussians::new(c);
+    for &g in &order {
+        out.push(
+            scene.means[g],
+            scene.quats[g],
+            scene.log_scales[g],
+            scene.opacity_logits[g],
+            &scene.features[g * c..(g + 1) * c],
+        );
+    }
+    let left = order.iter().filter(|&&g| scene.means[g][0] <= cut).count();
+    (out, left)
+}
+
+/// A render over a static layer of the first `split` Gaussians gives the full forward's
+/// images bit for bit, and its backward (those Gaussians held) the full backward's gradients,
+/// on any thread count; with the moving Gaussians on one side of the image it blends fewer
+/// pixels (the other tiles are the layer's).
+#[test]
+fn render_over_a_static_layer_is_a_full_render() {
+    use super::{forward_over_in, StaticLayer};
+    let cam = camera(120, 90);
+    for (n, channels, depth, seed) in [(4000usize, 3usize, true, 81u64), (20_000, 4, false, 82)] {
+        let (scene, left) = left_first(&random_scene(n, channels, seed), 0.6);
+        let img = image_grads(&cam, channels, seed + 1);
+        let mut background = options(channels, depth);
+        background.background.iter_mut().for_each(|b| *b = 0.7 - *b);
+        for split in [0, 1, 1237, left, n - 1, n] {
+            let (full, full_state) =
+                forward_in(&pool(2), &scene.view(), &cam, &background).unwrap();
+            let full_grads = backward_in(
+                &pool(2),
+                &full_state,
+                &output_grads(&img, depth),
+                true,
+                split,
+            )
+            .unwrap();
+            let expected = all_bits(&full, &full_grads);
+            let static_part = OwnedGaussians {
+                means: scene.means[..split].to_vec(),
+                quats: scene.quats[..split].to_vec(),
+                log_scales: scene.log_scales[..split].to_vec(),
+                opacity_logits: scene.opacity_logits[..split].to_vec(),
+                features: scene.features[..split * channels].to_vec(),
+                channels,
+            };
+            for threads in [1, 2, 7] {
+                let pool = pool(threads);
+                let layer = StaticLayer::new_in(&pool, &static_part.view(), &cam, depth).unwrap();
+                let (out, state) =
+                    forward_over_in(&pool, &layer, &scene.view(), &background).unwrap();
+                let grads =
+                    backward_in(&pool, &state, &output_grads(&img, depth), true, split).unwrap();
+                assert!(
+                    all_bits(&out, &grads) == expected,
+                    "n={n} split={split} threads={threads}: differs from the full render"
+                );
+                if split == left {
+                    let (saved, all) = (state.stats.evaluations, full_state.stats.evaluations);
+                    assert!(3 * saved < 2 * all, "n={n}: {saved} of {all} evaluations");
+                }
+            }
+        }
+    }
+}
+
+/// A render over a layer refuses other Gaussians in the layer's place, another channel count
+/// or depth setting, and a backward that asks gradients of the layer's Gaussians.
+#[test]
+fn render_over_a_static_layer_checks_its_inputs() {
+    use super::{forward_over_in, StaticLayer};
+    let (cam, pool) = (camera(60, 40), pool(2));
+    let scene = random_scene(500, 3, 90);
+    let first = OwnedGaussians {
+        means: scene.means[..200].to_vec(),
+        quats: scene.quats[..200].to_vec(),
+        log_scales: scene.log_scales[..200].to_vec(),
+        opacity_logits: scene.opacity_logits[..200].to_vec(),
+        features: scene.features[..600].to_vec(),
+        channels: 3,
+    };
+    let layer = StaticLayer::new_in(&pool, &first.view(), &cam, true).unwrap();
+    assert_eq!(
+        (layer.len(), layer.channels(), layer.depth()),
+        (200, 3, true)
+    );
+    let error = |scene: &OwnedGaussians, depth: bool| {
+        forward_over_in(
+            &pool,
+            &layer,
+            &scene.view(),
+            &options(scene.channels, depth),
+        )
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default()
+    };
+    let mut moved = scene.clone();
+    moved.opacity_logits[199] += 1e-6;
+    assert!(
+        error(&moved, true).contains("not the layer's"),
+        "{}",
+        error(&moved, true)
+    );
+    assert!(
+        error(&scene, false).contains("depth"),
+        "{}",
+        error(&scene, false)
+    );
+    assert!(error(&random_scene(500, 4, 90), true).contains("channels"));
+    assert!(error(&first, true).is_empty(), "the layer alone renders");
+    let mut fewer = first.clone();
+    fewer.means.pop();
+    fewer.quats.pop();
+    fewer.log_scales.pop();
+    fewer.opacity_logits.pop();
+    fewer.features.truncate(597);
+    assert!(error(&fewer, true).contains("not the layer's"));
+    let (out, state) = forward_over_in(&pool, &layer, &scene.view(), &options(3, true)).unwrap();
+    let img = image_grads(&cam, 3, 91);
+    let message = backward_in(&pool, &state, &output_grads(&img, true), true, 199)
+        .expect_err("gradients of a layer Gaussian")
+        .to_string();
+    assert!(message.contains("static layer"), "{message}");
+    assert!(all_finite(&out.features));
+}
