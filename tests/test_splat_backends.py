@@ -18,11 +18,16 @@ BACKGROUND = torch.tensor([0.1, 0.3, 0.6])
 
 
 def render_and_grads(
-    backend: str, seed: int = 3, held: int = 0
+    backend: str, seed: int = 3, held: int = 0, layered: bool = False
 ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Images and gradients of a random scene; `layered`: drawn over a static layer of the
+    `held` first Gaussians."""
     scene = random_scene(2000, 3, seed, 1.0, (-3.5, -2.0)).to(torch.float32, requires_grad=True)
-    out = splat.rasterize(*scene.arrays(), camera(61, 45), BACKGROUND, True, backend=backend,
-                          held=held)
+    cam = camera(61, 45)
+    layer = splat.static_layer(*(a.detach()[:held] for a in scene.arrays()), cam, True,
+                               backend=backend) if layered else None
+    out = splat.rasterize(*scene.arrays(), cam, BACKGROUND, True, backend=backend, held=held,
+                          layer=layer)
     g = torch.Generator().manual_seed(seed)
     images = [out.features, out.alpha, out.depth]
     loss = sum((img * torch.rand(img.shape, generator=g)).sum() for img in images)
@@ -57,6 +62,51 @@ def test_held_gaussians_pass_no_gradient_and_leave_the_others(backend):
             assert torch.equal(a[held:], b[held:]), name
         else:
             assert relative_l2(a[held:], b[held:]) <= 1e-5, name
+
+
+@pytest.mark.parametrize("backend", ["cpu", "wgpu"])
+def test_a_static_layer_changes_nothing_but_the_work(backend):
+    """Over a static layer of the held Gaussians the CPU executor gives the images and the
+    others' gradients of the full render bit for bit; the wgpu kernels keep no layers
+    (static_layer gives None) and render everything each time."""
+    held = 1200
+    images, grads = render_and_grads(backend, held=held)
+    layered_images, layered_grads = render_and_grads(backend, held=held, layered=True)
+    for a, b in zip(images, layered_images, strict=True):
+        assert torch.equal(a, b)
+    for name, a, b in zip(ARRAYS, grads, layered_grads, strict=True):
+        assert b[held:].abs().sum() > 0, name
+        if backend == "cpu":
+            assert torch.equal(a, b), name
+        else:
+            assert relative_l2(a, b) <= 1e-5, name
+    scene = random_scene(10, 3, 1, 1.0, (-3.5, -2.0)).to(torch.float32)
+    layer = splat.static_layer(*scene.arrays(), camera(31, 23), backend=backend)
+    assert (layer is None) == (backend == "wgpu")
+
+
+def test_a_static_layer_is_checked():
+    """A render over a layer must hold the layer's Gaussians, unchanged, seen by the same
+    camera with the same depth setting: else a one-line error naming what differs."""
+    scene = random_scene(300, 3, 9, 1.0, (-3.5, -2.0)).to(torch.float32)
+    cam = camera(31, 23)
+    layer = splat.static_layer(*(a[:100] for a in scene.arrays()), cam, backend="cpu")
+    assert len(layer) == 100 and "100 Gaussians" in repr(layer) and layer.nbytes > 0
+
+    def render(cam=cam, depth=False, held=100, arrays=scene.arrays()):  # noqa: B008
+        return splat.rasterize(*arrays, cam, depth=depth, held=held, layer=layer, backend="cpu")
+
+    assert torch.isfinite(render().features).all()
+    with pytest.raises(ValueError, match="'layer' holds 100"):
+        render(held=99)
+    with pytest.raises(ValueError, match="another camera"):
+        render(cam=camera(31, 24))
+    with pytest.raises(ValueError, match="depth"):
+        render(depth=True)
+    moved = [a.clone() for a in scene.arrays()]
+    moved[0][42, 1] += 1e-3
+    with pytest.raises(ValueError, match="not the layer's"):
+        render(arrays=moved)
 
 
 def test_held_matches_the_reference_and_is_checked():

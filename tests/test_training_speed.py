@@ -37,9 +37,16 @@ def test_held_pose_matches_the_dual_quaternion_pose_and_its_gradients():
     held = HeldModel(g)
     raw = random_motion(4)
     qr, qd = dq_normalize(*raw)
+    # Part 0, the static part, is the identity (as PartMotion.motion gives it).
+    qr = torch.cat([torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64), qr[1:]])
+    qd = torch.cat([torch.zeros(1, 4, dtype=torch.float64), qd[1:]])
     means, quats = held.pose(qr, qd)
     ids = g.part_ids()
     order = torch.argsort(ids, stable=True)
+    # ... and its Gaussians come back as they are, bit for bit (what its static layers hold).
+    static = held.counts[0]
+    assert static > 0 and torch.equal(means[:static], g["means"].detach()[order][:static])
+    assert torch.equal(quats[:static], g["quats"].detach()[order][:static])
     ref_means, ref_quats = pose_parts(g["means"].detach(), g["quats"].detach(), ids, qr, qd)
     ref_means, ref_quats = ref_means[order], ref_quats[order]
     # q and -q are one rotation: the blend may flip a part's sign, the per-part product never.

@@ -14,6 +14,11 @@ Executor: `backend="cpu"` or `"wgpu"`; None follows the environment variable GEA
 one (lavapipe, SwiftShader, WARP) or none can be created, else wgpu). The CPU executor uses
 GEAR_THREADS threads (default: every core); its gradients are bit-identical for any count.
 
+Gaussians that stay put over many renders from one camera (stage 3's held static part) can be
+kept as a static layer (`static_layer`): `rasterize(..., held=n, layer=...)` with those n
+first then projects and bins only the others and blends only the tiles they reach, for the
+same images and gradients bit for bit (the CPU executor; wgpu renders everything each time).
+
 Inputs are float32 CPU tensors; wrong shapes or dtypes raise an error naming the argument.
 Non-finite Gaussian values are not errors: such Gaussians are culled (zero output, zero grad).
 """
@@ -34,7 +39,7 @@ from gear.camera import Camera
 
 __all__ = [
     "BACKENDS", "Camera", "RenderOutput", "as_numpy", "auto_backend", "check_held", "rasterize",
-    "resolve_backend",
+    "resolve_backend", "static_layer",
 ]
 
 MAX_CHANNELS = 64
@@ -154,8 +159,11 @@ class _Rasterize(torch.autograd.Function):
         depth: bool,
         backend: str,
         held: int,
+        layer: Any,
     ) -> tuple[Tensor, ...]:
         render = _core.rasterize_forward_cpu if backend == "cpu" else _core.rasterize_forward
+        if layer is not None and backend == "cpu":
+            render = functools.partial(_core.rasterize_forward_over, layer)
         image, alpha, depth_image, state = render(
             *(as_numpy(t) for t in (means, quats, log_scales, opacity_logits, features)),
             np.ascontiguousarray(camera.world_to_cam, dtype=np.float32),
@@ -188,7 +196,7 @@ class _Rasterize(torch.autograd.Function):
         input_grads = tuple(
             torch.from_numpy(g) if need else None for g, need in zip(arrays, wanted, strict=True)
         )
-        return (*input_grads, None, None, None, None, None)
+        return (*input_grads, None, None, None, None, None, None)
 
 
 def rasterize(
@@ -202,6 +210,7 @@ def rasterize(
     depth: bool = False,
     backend: str | None = None,
     held: int = 0,
+    layer: Any = None,
 ) -> RenderOutput:
     """Renders N Gaussians seen by `camera` (see the module docstring).
 
@@ -209,12 +218,45 @@ def rasterize(
     [N,C] (1 <= C <= 64), background [C] (None: zeros): float32 CPU tensors. Gradients flow to
     the five Gaussian arrays that require them, but for the first `held` Gaussians: constants
     of the caller (e.g. a static part), whose gradients are zeros and cost the CPU executor's
-    backward no work beyond replaying them for the others' transmittance. `backend`: "cpu",
-    "wgpu" or None (GEAR_BACKEND).
+    backward no work beyond replaying them for the others' transmittance. `layer`: a
+    `static_layer` of the first len(layer) <= `held` Gaussians, made for this camera and
+    depth setting (the same images, less work). `backend`: "cpu", "wgpu" or None
+    (GEAR_BACKEND).
     """
     arrays = (means, quats, log_scales, opacity_logits, features)
     background = _check_inputs(arrays, camera, background)
     held = check_held(held, means.shape[0])
+    if layer is not None and len(layer) > held:
+        raise ValueError(f"'layer' holds {len(layer)} Gaussians: hold them all (held >= "
+                         f"{len(layer)}), got held={held}")
     executor = resolve_backend(backend)
-    outputs = _Rasterize.apply(*arrays, camera, background, bool(depth), executor, held)
+    outputs = _Rasterize.apply(*arrays, camera, background, bool(depth), executor, held, layer)
     return RenderOutput(outputs[0], outputs[1], outputs[2] if depth else None)
+
+
+def static_layer(
+    means: Tensor,
+    quats: Tensor,
+    log_scales: Tensor,
+    opacity_logits: Tensor,
+    features: Tensor,
+    camera: Camera,
+    depth: bool = False,
+    backend: str | None = None,
+) -> Any:
+    """The render of these Gaussians seen by `camera`, kept so that `rasterize(..., held=n,
+    layer=...)` can draw more Gaussians over them (these n first, unchanged: an error
+    otherwise). None where the executor keeps no layers (wgpu renders everything each time,
+    with the same result). Arguments as `rasterize`'s; `depth` as the renders over it."""
+    arrays = (means, quats, log_scales, opacity_logits, features)
+    _check_inputs(arrays, camera, None)
+    if resolve_backend(backend) != "cpu":
+        return None
+    return _core.static_layer_cpu(
+        *(as_numpy(t) for t in arrays),
+        np.ascontiguousarray(camera.world_to_cam, dtype=np.float32),
+        (camera.fx, camera.fy, camera.cx, camera.cy),
+        camera.width,
+        camera.height,
+        bool(depth),
+    )

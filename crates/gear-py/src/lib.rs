@@ -5,6 +5,7 @@ mod args;
 mod consistency;
 mod errors;
 mod geometry;
+mod layer;
 mod motion;
 mod sh;
 mod splat;
@@ -53,6 +54,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(adapter_info, m)?)?;
     m.add_function(wrap_pyfunction!(sum_f32, m)?)?;
     splat::register(m)?;
+    layer::register(m)?;
     geometry::register(m)?;
     sh::register(m)?;
     motion::register(m)?;

@@ -17,13 +17,13 @@ use crate::args::{array, has_dtype, Dim, Dtype};
 use crate::errors::guarded;
 
 /// Owned inputs of a reference forward pass, replayed by its backward.
-struct ReferenceInputs {
+pub(crate) struct ReferenceInputs {
     gaussians: OwnedGaussians,
     camera: Camera,
     options: RenderOptions,
 }
 
-enum StateKind {
+pub(crate) enum StateKind {
     Gpu(Box<ForwardState>),
     Cpu(Box<cpu::CpuState>),
     Reference(Box<ReferenceInputs>),
@@ -88,7 +88,7 @@ impl RasterState {
 }
 
 /// The forward arguments, checked and borrowed from numpy.
-struct ForwardArgs<'py> {
+pub(crate) struct ForwardArgs<'py> {
     arrays: [numpy::PyReadonlyArrayDyn<'py, f32>; 5],
     channels: usize,
     camera: Camera,
@@ -132,8 +132,29 @@ pub(crate) fn camera(
     })
 }
 
+/// The five Gaussian arrays of the rasterizer contract, checked, and their channel count.
+pub(crate) fn gaussian_arrays<'py>(
+    means: &Bound<'py, PyAny>,
+    quats: &Bound<'py, PyAny>,
+    log_scales: &Bound<'py, PyAny>,
+    opacity_logits: &Bound<'py, PyAny>,
+    features: &Bound<'py, PyAny>,
+) -> PyResult<([numpy::PyReadonlyArrayDyn<'py, f32>; 5], usize)> {
+    let n = Dim::Any("N");
+    let features = array::<f32>(features, "features", &[n, Dim::Any("C")])?;
+    let channels = features.shape()[1];
+    let arrays = [
+        array::<f32>(means, "means", &[n, Dim::Fixed(3)])?,
+        array::<f32>(quats, "quats", &[n, Dim::Fixed(4)])?,
+        array::<f32>(log_scales, "log_scales", &[n, Dim::Fixed(3)])?,
+        array::<f32>(opacity_logits, "opacity_logits", &[n])?,
+        features,
+    ];
+    Ok((arrays, channels))
+}
+
 #[allow(clippy::too_many_arguments)]
-fn forward_args<'py>(
+pub(crate) fn forward_args<'py>(
     means: &Bound<'py, PyAny>,
     quats: &Bound<'py, PyAny>,
     log_scales: &Bound<'py, PyAny>,
@@ -146,16 +167,7 @@ fn forward_args<'py>(
     background: &Bound<'py, PyAny>,
     depth: bool,
 ) -> PyResult<ForwardArgs<'py>> {
-    let n = Dim::Any("N");
-    let features = array::<f32>(features, "features", &[n, Dim::Any("C")])?;
-    let channels = features.shape()[1];
-    let arrays = [
-        array::<f32>(means, "means", &[n, Dim::Fixed(3)])?,
-        array::<f32>(quats, "quats", &[n, Dim::Fixed(4)])?,
-        array::<f32>(log_scales, "log_scales", &[n, Dim::Fixed(3)])?,
-        array::<f32>(opacity_logits, "opacity_logits", &[n])?,
-        features,
-    ];
+    let (arrays, channels) = gaussian_arrays(means, quats, log_scales, opacity_logits, features)?;
     let camera = camera(world_to_cam, intrinsics, width, height)?;
     let background = array::<f32>(background, "background", &[Dim::Fixed(channels)])?;
     let options = RenderOptions {
@@ -228,25 +240,26 @@ fn gradients<'py, T: Element + Copy>(
     ))
 }
 
-type ForwardResult<'py> = (
+pub(crate) type ForwardResult<'py> = (
     Bound<'py, PyAny>,
     Bound<'py, PyAny>,
     Option<Bound<'py, PyAny>>,
     RasterState,
 );
 
-/// The renderer of a forward binding: images and the state its backward needs.
-type Render<T> =
-    fn(Gaussians<'_>, &Camera, &RenderOptions) -> gear_core::Result<(RenderOutput<T>, StateKind)>;
-
-/// What both forward bindings do around their renderer: borrow the checked arrays as
-/// Gaussians, run `render` (GIL released), and return its images as numpy arrays with a
-/// `RasterState` around the state it made.
-fn forward_result<'py, T: Element + Send>(
+/// What every forward binding does around its renderer: borrow the checked arrays as
+/// Gaussians, run `render` (GIL released; it returns the images and the state its backward
+/// needs), and return its images as numpy arrays with a `RasterState` around the state it made.
+pub(crate) fn forward_result<'py, T: Element + Send>(
     py: Python<'py>,
     args: &ForwardArgs<'py>,
     force_cas: bool,
-    render: Render<T>,
+    render: impl FnOnce(
+            Gaussians<'_>,
+            &Camera,
+            &RenderOptions,
+        ) -> gear_core::Result<(RenderOutput<T>, StateKind)>
+        + Send,
 ) -> PyResult<ForwardResult<'py>> {
     let [means, quats, log_scales, opacity_logits, features] = args.slices()?;
     let (camera, options, channels) = (&args.camera, &args.options, args.channels);

@@ -2,7 +2,7 @@
 the initialisation and the one render call (docs/architecture.md)."""
 
 from gear.splats.gaussians import Gaussians
-from gear.splats.rendering import render
+from gear.splats.rendering import StaticLayers, render
 from gear.splats.strategy import Densifier, gaussian_budget
 
-__all__ = ["Densifier", "Gaussians", "gaussian_budget", "render"]
+__all__ = ["Densifier", "Gaussians", "StaticLayers", "gaussian_budget", "render"]

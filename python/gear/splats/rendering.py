@@ -47,6 +47,7 @@ def render(
     depth: bool = False,
     detach: bool = False,
     held: int = 0,
+    layers: StaticLayers | None = None,
 ) -> Any:  # RenderOutput(.features [H,W,C], .alpha [H,W], .depth [H,W] | None)
     """`splats` seen from `camera` over `background` [C] (black when None).
 
@@ -57,7 +58,9 @@ def render(
     in the same pass: one projection and sort serve both (blending is per channel).
     detach: no gradient reaches the stored parameters (a given pose or features keep their
     own graph). held: the first `held` Gaussians pass no gradient at all (constants of the
-    caller, e.g. a static part; their backward work is skipped)."""
+    caller, e.g. a static part; their backward work is skipped). layers: the static layers of
+    the first layers.count <= held Gaussians, which stay as they are from render to render:
+    the same images for less work (gear.splat.static_layer)."""
     stored = splats.splat_arrays()
     if detach:
         stored = tuple(t.detach() for t in stored)
@@ -72,5 +75,42 @@ def render(
     if extra is not None:
         feats = torch.cat([feats, extra], dim=1)
         bg = torch.cat([bg, torch.zeros(extra.shape[1], dtype=bg.dtype)])
-    return rasterizer()(means, quats, log_scales, opacity, feats, camera, background=bg,
-                        depth=depth, held=held)
+    arrays = (means, quats, log_scales, opacity, feats)
+    layer = layers.layer(arrays, camera, depth) if layers is not None else None
+    extra_args = {"layer": layer} if layer is not None else {}
+    return rasterizer()(*arrays, camera, background=bg, depth=depth, held=held, **extra_args)
+
+
+class StaticLayers:
+    """The static layers (gear.splat.static_layer) of the first `count` Gaussians of a model
+    whose first `count` stay as they are (e.g. a static part held while the others move),
+    one per camera and depth setting, each made at its first render. Empty without the
+    executor's layers (the torch reference, the wgpu kernels)."""
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+        self._layers: dict[tuple[int, bool], tuple[Camera, Any]] = {}
+
+    def layer(self, arrays: tuple[torch.Tensor, ...], camera: Camera, depth: bool) -> Any:
+        """The layer for `camera`, made from the first `count` rows of `arrays` (means, quats,
+        log_scales, opacity logits, features) if it is not there yet; None without layers."""
+        key = (id(camera), depth)
+        if key not in self._layers:
+            from gear import _core
+
+            if not hasattr(_core, "static_layer_cpu"):
+                return None
+            from gear.splat import static_layer
+
+            made = static_layer(*(t.detach()[: self.count] for t in arrays), camera, depth)
+            # The camera is kept with its layer so that its id cannot be reused meanwhile.
+            self._layers[key] = (camera, made)
+        return self._layers[key][1]
+
+    def __len__(self) -> int:
+        """Layers made so far."""
+        return len(self._layers)
+
+    def nbytes(self) -> int:
+        """Bytes the layers hold."""
+        return sum(layer.nbytes for _, layer in self._layers.values() if layer is not None)

@@ -14,7 +14,7 @@ from gear.config import TrainConfig
 from gear.geometry import nearest_neighbours
 from gear.kinematics import dq_to_rt, quat_mul, quat_rotate
 from gear.pipeline.common import Stage, TrainView, gaussian_lrs, image_terms, map_beside
-from gear.splats import Densifier, Gaussians, gaussian_budget, render
+from gear.splats import Densifier, Gaussians, StaticLayers, gaussian_budget, render
 from gear.splats.init import scene_extent
 from gear.splats.sh import SH_PARAM
 
@@ -60,18 +60,24 @@ class HeldModel:
         # The view-dependent colour's coefficients, in the same order (gear.splats.sh reads
         # them from `params` like a Gaussians' own).
         self.params = {SH_PARAM: g[SH_PARAM].detach()[order]} if SH_PARAM in g.params else {}
+        # The static part comes first and never moves: its render from each camera is kept
+        # (None: every render in full).
+        self.layers: StaticLayers | None = StaticLayers(self.counts[0])
 
     def pose(self, qr: torch.Tensor, qd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(means, quats) [N, 3], [N, 4] of the held Gaussians moved rigidly with their parts by
-        the unit dual quaternions qr, qd [K, 4]; differentiable in qr and qd."""
+        the unit dual quaternions qr, qd [K, 4] (part 0's the identity: the static part stays
+        as it is, bit for bit what its layers were made of); differentiable in qr and qd."""
         # Row j of rot_t[k] is R_k e_j (so x R_k^T = x @ rot_t[k]); row i of turn[k] is
         # qr_k * e_i (so qr_k * q = q @ turn[k]).
         rot_t = quat_rotate(qr[:, None, :], torch.eye(3, dtype=qr.dtype))
         turn = quat_mul(qr[:, None, :], torch.eye(4, dtype=qr.dtype))
         shift = dq_to_rt(qr, qd)[1]
-        means = [m @ rot_t[k] + shift[k] for k, m in enumerate(self.means.split(self.counts))]
-        quats = [q @ turn[k] for k, q in enumerate(self.quats.split(self.counts))]
-        return torch.cat(means), torch.cat(quats)
+        static_means, *means = self.means.split(self.counts)
+        static_quats, *quats = self.quats.split(self.counts)
+        means = [m @ rot_t[k] + shift[k] for k, m in enumerate(means, start=1)]
+        quats = [q @ turn[k] for k, q in enumerate(quats, start=1)]
+        return torch.cat([static_means, *means]), torch.cat([static_quats, *quats])
 
     def splat_arrays(self) -> tuple[torch.Tensor, ...]:
         return (self.means, self.quats, *self._drawn)
@@ -222,9 +228,11 @@ class RefineState(Stage):
         """One view's image terms of the held model at `pose`, divided by the `count` views
         they are averaged over."""
         # The static part comes first and never moves (part 0's motion is the identity): its
-        # Gaussians pass no gradient, and the rasterizer's backward skips their work.
+        # Gaussians pass no gradient, the rasterizer's backward skips their work, and its
+        # forward starts from their layer for this camera (only what moves is binned, and
+        # only where it lands is blended).
         out = render(held, view.camera, bg, pose=pose, depth=view.depth is not None,
-                     held=held.counts[0])
+                     held=held.counts[0], layers=held.layers)
         terms = image_terms(out, view, bg, self.config)
         return {name: value / count for name, value in terms.items()}
 

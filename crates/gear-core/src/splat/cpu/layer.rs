@@ -98,15 +98,16 @@ impl StaticLayer {
 }
 
 /// Renders `gaussians`, whose first `layer.len()` are the layer's Gaussians unchanged, seen by
-/// the layer's camera: the same images as [`super::forward`] bit for bit, and a state whose
+/// `camera` (the layer's): the same images as [`super::forward`] bit for bit, and a state whose
 /// backward gives the same gradients to the Gaussians after the layer's (the layer's must be
 /// held: they get none). In the process-wide thread pool.
 pub fn forward_over(
     layer: &StaticLayer,
     gaussians: &Gaussians,
+    camera: &Camera,
     options: &RenderOptions,
 ) -> Result<(RenderOutput<f32>, CpuState)> {
-    forward_over_in(global_pool()?, layer, gaussians, options)
+    forward_over_in(global_pool()?, layer, gaussians, camera, options)
 }
 
 /// [`forward_over`] in the thread pool `pool`.
@@ -114,11 +115,12 @@ pub fn forward_over_in(
     pool: &ThreadPool,
     layer: &StaticLayer,
     gaussians: &Gaussians,
+    camera: &Camera,
     options: &RenderOptions,
 ) -> Result<(RenderOutput<f32>, CpuState)> {
     gaussians.validate()?;
     options.validate(gaussians.channels)?;
-    check_over(layer, gaussians, options)?;
+    check_over(layer, gaussians, camera, options)?;
     pool.install(|| {
         let (bins, blend) = bin_over(&layer.bins, gaussians, &layer.camera);
         let base = Base {
@@ -132,9 +134,17 @@ pub fn forward_over_in(
 }
 
 /// Errors unless `gaussians` start with the layer's Gaussians and the render matches the
-/// layer's channels and depth.
-fn check_over(layer: &StaticLayer, gaussians: &Gaussians, options: &RenderOptions) -> Result<()> {
+/// layer's camera, channels and depth.
+fn check_over(
+    layer: &StaticLayer,
+    gaussians: &Gaussians,
+    camera: &Camera,
+    options: &RenderOptions,
+) -> Result<()> {
     let invalid = |message: String| Err(GearError::InvalidInput(message));
+    if *camera != layer.camera {
+        return invalid("static layer: made for another camera".into());
+    }
     if gaussians.channels != layer.channels {
         return invalid(format!(
             "static layer: made with {} feature channels, rendered with {}",

@@ -446,7 +446,7 @@ fn render_over_a_static_layer_is_a_full_render() {
                 let pool = pool(threads);
                 let layer = StaticLayer::new_in(&pool, &static_part.view(), &cam, depth).unwrap();
                 let (out, state) =
-                    forward_over_in(&pool, &layer, &scene.view(), &background).unwrap();
+                    forward_over_in(&pool, &layer, &scene.view(), &cam, &background).unwrap();
                 let grads =
                     backward_in(&pool, &state, &output_grads(&img, depth), true, split).unwrap();
                 assert!(
@@ -487,6 +487,7 @@ fn render_over_a_static_layer_checks_its_inputs() {
             &pool,
             &layer,
             &scene.view(),
+            &cam,
             &options(scene.channels, depth),
         )
         .err()
@@ -514,7 +515,14 @@ fn render_over_a_static_layer_checks_its_inputs() {
     fewer.opacity_logits.pop();
     fewer.features.truncate(597);
     assert!(error(&fewer, true).contains("not the layer's"));
-    let (out, state) = forward_over_in(&pool, &layer, &scene.view(), &options(3, true)).unwrap();
+    let other = camera(60, 41);
+    let message = forward_over_in(&pool, &layer, &scene.view(), &other, &options(3, true))
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default();
+    assert!(message.contains("another camera"), "{message}");
+    let (out, state) =
+        forward_over_in(&pool, &layer, &scene.view(), &cam, &options(3, true)).unwrap();
     let img = image_grads(&cam, 3, 91);
     let message = backward_in(&pool, &state, &output_grads(&img, true), true, 199)
         .expect_err("gradients of a layer Gaussian")
