@@ -75,10 +75,13 @@ def render(
     if extra is not None:
         feats = torch.cat([feats, extra], dim=1)
         bg = torch.cat([bg, torch.zeros(extra.shape[1], dtype=bg.dtype)])
+    draw = rasterizer()
     arrays = (means, quats, log_scales, opacity, feats)
-    layer = layers.layer(arrays, camera, depth) if layers is not None else None
+    layer = None
+    if layers is not None and layers.serve(draw):
+        layer = layers.layer(arrays, camera, depth)
     extra_args = {"layer": layer} if layer is not None else {}
-    return rasterizer()(*arrays, camera, background=bg, depth=depth, held=held, **extra_args)
+    return draw(*arrays, camera, background=bg, depth=depth, held=held, **extra_args)
 
 
 class StaticLayers:
@@ -91,15 +94,23 @@ class StaticLayers:
         self.count = count
         self._layers: dict[tuple[int, bool], tuple[Camera, Any]] = {}
 
+    @staticmethod
+    def serve(draw: Callable) -> bool:
+        """Whether renders by `draw` can start from a layer (the native rasterizer's)."""
+        from gear import _core
+
+        if not hasattr(_core, "static_layer_cpu"):
+            return False
+        from gear.splat import rasterize
+
+        return draw is rasterize
+
     def layer(self, arrays: tuple[torch.Tensor, ...], camera: Camera, depth: bool) -> Any:
         """The layer for `camera`, made from the first `count` rows of `arrays` (means, quats,
-        log_scales, opacity logits, features) if it is not there yet; None without layers."""
+        log_scales, opacity logits, features) if it is not there yet; None where the executor
+        keeps no layers (wgpu)."""
         key = (id(camera), depth)
         if key not in self._layers:
-            from gear import _core
-
-            if not hasattr(_core, "static_layer_cpu"):
-                return None
             from gear.splat import static_layer
 
             made = static_layer(*(t.detach()[: self.count] for t in arrays), camera, depth)
