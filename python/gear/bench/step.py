@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
 from torch.profiler import ProfilerActivity, profile
 
 from gear import checkpoint
@@ -105,7 +106,18 @@ def phases(run_dir: Path, scene_dir: Path) -> Iterator[tuple[str, Stage, int]]:
     for phase in ("E", "M"):
         it = next(i for i in range(config.stage3_iterations - 1, -1, -1)
                   if refine.phase(i) == phase and i != config.joint_classify_iteration)
+        if phase == "M":
+            make_static_layers(refine)
         yield f"stage 3, {phase}-step", refine, it
+
+
+def make_static_layers(refine: Refine) -> None:
+    """Renders every target view of the held model once: an M-phase of hundreds of steps
+    makes the static part's layer of each view at its first render and draws over it after,
+    so the timed steps should find them made."""
+    with torch.no_grad():
+        views = refine.target_views
+        refine.held_image_terms(refine.motion, views, [torch.zeros(3)] * len(views))
 
 
 def stage3_state(saved: dict, models: dict, coarse: Stage2Result,
