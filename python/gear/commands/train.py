@@ -16,7 +16,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--profile", choices=PROFILES, default=None,
                    help="schedule, with its measured cost at 128x128 on 2 CPU cores without a "
                         "GPU: quick (300+300 iterations, ~30 s; demo/CI), fast (10k+10k, "
-                        "default, 19-28 min on a recent CPU, ~40 on an older one), "
+                        "default, 18-28 min on a recent CPU, ~40 on an older one), "
                         "full (30k+30k, about 3x fast)")
     p.add_argument("--parts", type=int, default=None,
                    help="number of parts K including the static one (default: estimated)")
