@@ -60,16 +60,24 @@ def test_work_inside_work_runs_in_turn():
     assert inner == [[(0, 0), (0, 1)], [(1, 0), (1, 1)]]
 
 
-def test_held_image_step_gives_the_gradients_of_one_graph():
+def wall_and_planks(views: int) -> tuple[Refine, list, list[torch.Tensor]]:
+    """Stage 3 on a wall with a turning and a sliding plank, its `views` target views and a
+    background for each."""
     blocks = [(wall(), 0), (plank(-0.3, 0.0), 1), (plank(0.1, 0.3, z=-0.25), 2)]
     g = grid_gaussians(blocks)
     turn = (rot_z(30.0), np.array([0.05, -0.02, 0.0]))
     slide = (np.eye(3), np.array([0.0, -0.2, 0.0]))
-    target = views_of(g, PartMotion.from_rt([turn, slide]), n=4)
+    target = views_of(g, PartMotion.from_rt([turn, slide]), n=views)
     s = Refine(g, PartMotion.from_rt([(rot_z(26.0), np.zeros(3)), slide]), g.clone(),
-               views_of(g, PartMotion(g.num_parts), n=4), target,
+               views_of(g, PartMotion(g.num_parts), n=views), target,
                make_config("quick", dict(em_interval=2)), seed=0)
-    backgrounds = [torch.rand(3, generator=torch.Generator().manual_seed(i)) for i in range(4)]
+    backgrounds = [torch.rand(3, generator=torch.Generator().manual_seed(i))
+                   for i in range(views)]
+    return s, target, backgrounds
+
+
+def test_held_image_step_gives_the_gradients_of_one_graph():
+    s, target, backgrounds = wall_and_planks(4)
     qr, qd = s.motion.qr, s.motion.qd
     terms = s.held_image_terms(s.motion, target, backgrounds)
     sum(terms.values()).backward()
@@ -86,15 +94,7 @@ def test_the_static_parts_layers_change_no_motion_gradient():
     """The M-step draws the moving parts over the static part's layer per camera: the terms
     and the motion's gradients of the full renders, bit for bit, with one layer kept per view
     rendered."""
-    blocks = [(wall(), 0), (plank(-0.3, 0.0), 1), (plank(0.1, 0.3, z=-0.25), 2)]
-    g = grid_gaussians(blocks)
-    turn = (rot_z(30.0), np.array([0.05, -0.02, 0.0]))
-    slide = (np.eye(3), np.array([0.0, -0.2, 0.0]))
-    target = views_of(g, PartMotion.from_rt([turn, slide]), n=3)
-    s = Refine(g, PartMotion.from_rt([(rot_z(26.0), np.zeros(3)), slide]), g.clone(),
-               views_of(g, PartMotion(g.num_parts), n=3), target,
-               make_config("quick", dict(em_interval=2)), seed=0)
-    backgrounds = [torch.rand(3, generator=torch.Generator().manual_seed(i)) for i in range(3)]
+    s, target, backgrounds = wall_and_planks(3)
     qr, qd = s.motion.qr, s.motion.qd
 
     def step() -> tuple[dict, torch.Tensor, torch.Tensor]:

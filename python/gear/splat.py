@@ -143,6 +143,13 @@ def as_numpy(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().numpy())
 
 
+def _camera_args(camera: Camera) -> tuple:
+    """The camera as the native bindings take it: world-to-camera [4, 4] float32, (fx, fy,
+    cx, cy), width, height."""
+    return (np.ascontiguousarray(camera.world_to_cam, dtype=np.float32),
+            (camera.fx, camera.fy, camera.cx, camera.cy), camera.width, camera.height)
+
+
 class _Rasterize(torch.autograd.Function):
     """Outputs (features, alpha) or (features, alpha, depth); gradients to the five arrays."""
 
@@ -166,10 +173,7 @@ class _Rasterize(torch.autograd.Function):
             render = functools.partial(_core.rasterize_forward_over, layer)
         image, alpha, depth_image, state = render(
             *(as_numpy(t) for t in (means, quats, log_scales, opacity_logits, features)),
-            np.ascontiguousarray(camera.world_to_cam, dtype=np.float32),
-            (camera.fx, camera.fy, camera.cx, camera.cy),
-            camera.width,
-            camera.height,
+            *_camera_args(camera),
             as_numpy(background),
             depth,
         )
@@ -252,11 +256,5 @@ def static_layer(
     _check_inputs(arrays, camera, None)
     if resolve_backend(backend) != "cpu":
         return None
-    return _core.static_layer_cpu(
-        *(as_numpy(t) for t in arrays),
-        np.ascontiguousarray(camera.world_to_cam, dtype=np.float32),
-        (camera.fx, camera.fy, camera.cx, camera.cy),
-        camera.width,
-        camera.height,
-        bool(depth),
-    )
+    return _core.static_layer_cpu(*(as_numpy(t) for t in arrays), *_camera_args(camera),
+                                  bool(depth))

@@ -3,12 +3,13 @@
 //! drawn over it (bit for bit the full render; its backward is `rasterize_backward` with the
 //! layer's Gaussians held).
 
-use gear_core::splat::{cpu, Gaussians};
+use gear_core::splat::{cpu, Camera, Gaussians, RenderOptions};
 use pyo3::prelude::*;
 
 use crate::errors::guarded;
 use crate::splat::{
-    camera, forward_args, forward_result, gaussian_arrays, ForwardResult, StateKind,
+    camera, forward_args, forward_binding, forward_result, gaussian_arrays, ForwardResult,
+    StateKind,
 };
 
 /// The render of some Gaussians seen by one camera, for `rasterize_forward_over`.
@@ -78,47 +79,20 @@ fn static_layer_cpu(
     Ok(StaticLayer { layer })
 }
 
-/// Renders with the CPU executor Gaussians whose first `len(layer)` are the layer's, seen by
-/// the layer's camera: only the others are projected and binned, and only the tiles they reach
-/// are blended. Arguments after `layer` as `rasterize_forward_cpu`'s; an error if those
-/// Gaussians, the camera, the channel count or the depth setting differ from the layer's.
-#[pyfunction]
-#[pyo3(signature = (layer, means, quats, log_scales, opacity_logits, features, world_to_cam, intrinsics, width, height, background, depth))]
-#[allow(clippy::too_many_arguments)]
-fn rasterize_forward_over<'py>(
-    py: Python<'py>,
-    layer: &Bound<'py, StaticLayer>,
-    means: &Bound<'py, PyAny>,
-    quats: &Bound<'py, PyAny>,
-    log_scales: &Bound<'py, PyAny>,
-    opacity_logits: &Bound<'py, PyAny>,
-    features: &Bound<'py, PyAny>,
-    world_to_cam: &Bound<'py, PyAny>,
-    intrinsics: (f32, f32, f32, f32),
-    width: u32,
-    height: u32,
-    background: &Bound<'py, PyAny>,
-    depth: bool,
-) -> PyResult<ForwardResult<'py>> {
-    let args = forward_args(
-        means,
-        quats,
-        log_scales,
-        opacity_logits,
-        features,
-        world_to_cam,
-        intrinsics,
-        width,
-        height,
-        background,
-        depth,
-    )?;
-    let layer = &layer.get().layer;
-    forward_result(py, &args, false, |gaussians, camera, options| {
-        let (out, state) = cpu::forward_over(layer, &gaussians, camera, options)?;
-        Ok((out, StateKind::Cpu(Box::new(state))))
-    })
-}
+forward_binding!(
+    /// Renders with the CPU executor Gaussians whose first `len(layer)` are the layer's, seen
+    /// by the layer's camera: only the others are projected and binned, and only the tiles
+    /// they reach are blended. Arguments after `layer` as `rasterize_forward_cpu`'s
+    /// (`force_cas` is accepted and ignored); an error if those Gaussians, the camera, the
+    /// channel count or the depth setting differ from the layer's.
+    rasterize_forward_over(layer: &Bound<'_, StaticLayer>) => {
+        let layer = &layer.get().layer;
+        move |gaussians: Gaussians<'_>, camera: &Camera, options: &RenderOptions| {
+            let (out, state) = cpu::forward_over(layer, &gaussians, camera, options)?;
+            Ok((out, StateKind::Cpu(Box::new(state))))
+        }
+    }
+);
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<StaticLayer>()?;

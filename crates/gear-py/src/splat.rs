@@ -281,17 +281,20 @@ pub(crate) fn forward_result<'py, T: Element + Send>(
     Ok((f, a, d, state))
 }
 
-/// Declares a forward binding with the rasterizer contract's signature: it checks the
-/// arguments and hands them to `forward_result` with `$render` (a [`Render`]). One declaration
-/// serves the GPU and the reference binding, so their signatures cannot drift apart.
+/// Declares a forward binding with the rasterizer contract's signature, after the leading
+/// parameters given in parentheses (none but for the render over a static layer): it checks
+/// the arguments and hands them to `forward_result` with `$render` (a renderer of the
+/// Gaussians, camera and options, which may use the leading parameters). One declaration
+/// serves every forward binding, so their signatures cannot drift apart.
 macro_rules! forward_binding {
-    ($(#[$doc:meta])* $name:ident => $render:path) => {
+    ($(#[$doc:meta])* $name:ident($($lead:ident: $lead_ty:ty),*) => $render:expr) => {
         $(#[$doc])*
         #[pyfunction]
-        #[pyo3(signature = (means, quats, log_scales, opacity_logits, features, world_to_cam, intrinsics, width, height, background, depth, force_cas=false))]
+        #[pyo3(signature = ($($lead,)* means, quats, log_scales, opacity_logits, features, world_to_cam, intrinsics, width, height, background, depth, force_cas=false))]
         #[allow(clippy::too_many_arguments)]
         fn $name<'py>(
             py: Python<'py>,
+            $($lead: $lead_ty,)*
             means: &Bound<'py, PyAny>,
             quats: &Bound<'py, PyAny>,
             log_scales: &Bound<'py, PyAny>,
@@ -322,6 +325,7 @@ macro_rules! forward_binding {
         }
     };
 }
+pub(crate) use forward_binding;
 
 fn render_gpu(
     gaussians: Gaussians<'_>,
@@ -369,26 +373,26 @@ fn render_reference(
 forward_binding!(
     /// Renders on the GPU. `force_cas` makes the later backward accumulate with the
     /// compare-and-swap loop even where float32 atomics exist (to test that path).
-    rasterize_forward => render_gpu
+    rasterize_forward() => render_gpu
 );
 
 forward_binding!(
     /// `rasterize_forward` with the blend's work counters (a slower variant, for benchmarks):
     /// its state's `stats()` has them too.
-    rasterize_forward_counted => render_gpu_counted
+    rasterize_forward_counted() => render_gpu_counted
 );
 
 forward_binding!(
     /// Renders with the native CPU executor (threads: `GEAR_THREADS`, default every core);
     /// same arguments as `rasterize_forward` (`force_cas` is accepted and ignored). Its
     /// backward is `rasterize_backward` too.
-    rasterize_forward_cpu => render_cpu
+    rasterize_forward_cpu() => render_cpu
 );
 
 forward_binding!(
     /// Renders with the f64 CPU reference (outputs float64); same arguments as
     /// `rasterize_forward` (`force_cas` is accepted and ignored).
-    reference_forward => render_reference
+    reference_forward() => render_reference
 );
 
 /// Image gradients as checked numpy views of element type `T`.

@@ -377,20 +377,7 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     let mut lists = Lists::take(projected.pairs.len(), channels);
     lists.fill(&tile_offsets, &projected, &pair_offsets, gaussians, 0);
     lists.sort_by_depth(&tile_offsets, channels);
-    SPLATS.keep(projected.splats);
-    PAIRS.keep(projected.pairs);
-    Bins {
-        tiles_x: grid.tiles_x,
-        tiles_y: grid.tiles_y(),
-        channels,
-        tile_offsets,
-        entries: lists.entries,
-        entry_features: lists.features,
-        pair_offsets,
-        entry_pairs: lists.pairs,
-        prepared: projected.prepared,
-        len: gaussians.len(),
-    }
+    Bins::assemble(grid, channels, lists, tile_offsets, pair_offsets, projected)
 }
 
 /// The bins of `gaussians` whose first `base.len` are the Gaussians `base` binned, seen by the
@@ -423,21 +410,37 @@ pub(super) fn bin_over(base: &Bins, gaussians: &Gaussians, camera: &Camera) -> (
     let mut lists = Lists::take(tile_offsets[tile_count] as usize, channels);
     lists.merge(&tile_offsets, base, &own, &own_offsets);
     own.keep();
-    SPLATS.keep(projected.splats);
-    PAIRS.keep(projected.pairs);
-    let bins = Bins {
-        tiles_x: grid.tiles_x,
-        tiles_y: grid.tiles_y(),
-        channels,
-        tile_offsets,
-        entries: lists.entries,
-        entry_features: lists.features,
-        pair_offsets,
-        entry_pairs: lists.pairs,
-        prepared: projected.prepared,
-        len: gaussians.len(),
-    };
+    let bins = Bins::assemble(grid, channels, lists, tile_offsets, pair_offsets, projected);
     (bins, touched)
+}
+
+impl Bins {
+    /// The bins of `lists` (ranges `tile_offsets`, `channels` features per entry) and
+    /// `projected`'s Gaussians, whose pairs start at `pair_offsets`; binning's scratch goes back
+    /// to the kept buffers.
+    fn assemble(
+        grid: Grid,
+        channels: usize,
+        lists: Lists,
+        tile_offsets: Vec<u32>,
+        pair_offsets: Vec<u32>,
+        projected: Projected,
+    ) -> Self {
+        SPLATS.keep(projected.splats);
+        PAIRS.keep(projected.pairs);
+        Bins {
+            tiles_x: grid.tiles_x,
+            tiles_y: grid.tiles_y(),
+            channels,
+            len: pair_offsets.len() - 1,
+            tile_offsets,
+            entries: lists.entries,
+            entry_features: lists.features,
+            pair_offsets,
+            entry_pairs: lists.pairs,
+            prepared: projected.prepared,
+        }
+    }
 }
 
 /// The tile lists under construction: entry e of every array belongs to the same pair.
@@ -501,20 +504,16 @@ impl Lists {
     /// the tiles.
     fn merge(&mut self, tile_offsets: &[u32], base: &Bins, own: &Lists, own_offsets: &[u32]) {
         let channels = base.channels;
-        let lengths: Vec<usize> = tile_offsets
-            .windows(2)
-            .map(|w| (w[1] - w[0]) as usize)
-            .collect();
-        let entries = split_by_lengths(&mut self.entries, &lengths, 1);
-        let features = split_by_lengths(&mut self.features, &lengths, channels);
-        let pairs = split_by_lengths(&mut self.pairs, &lengths, 1);
-        entries
+        self.by_tile(tile_offsets, channels)
             .into_par_iter()
-            .zip(features)
-            .zip(pairs)
             .enumerate()
-            .filter(|(_, ((entries, _), _))| !entries.is_empty())
-            .for_each(|(t, ((entries, features), pairs))| {
+            .filter(|(_, tile)| !tile.entries.is_empty())
+            .for_each(|(t, tile)| {
+                let TileList {
+                    entries,
+                    features,
+                    pairs,
+                } = tile;
                 let from_base = base.range(t);
                 let from_own = own_offsets[t] as usize..own_offsets[t + 1] as usize;
                 let (mut b, mut o) = (from_base.start, from_own.start);
@@ -544,6 +543,15 @@ impl Lists {
     /// keep index order, as in the GPU's stable sort and the reference. z > 0, so its bits
     /// order like the floats.
     fn sort_by_depth(&mut self, tile_offsets: &[u32], channels: usize) {
+        self.by_tile(tile_offsets, channels)
+            .into_par_iter()
+            .for_each_init(TileScratch::default, |scratch, tile| {
+                scratch.sort(tile, channels)
+            });
+    }
+
+    /// Each tile's part of the lists (ranges `tile_offsets`), to work on the tiles in parallel.
+    fn by_tile(&mut self, tile_offsets: &[u32], channels: usize) -> Vec<TileList<'_>> {
         let lengths: Vec<usize> = tile_offsets
             .windows(2)
             .map(|w| (w[1] - w[0]) as usize)
@@ -552,16 +560,23 @@ impl Lists {
         let features = split_by_lengths(&mut self.features, &lengths, channels);
         let pairs = split_by_lengths(&mut self.pairs, &lengths, 1);
         entries
-            .into_par_iter()
+            .into_iter()
             .zip(features)
             .zip(pairs)
-            .for_each_init(
-                TileScratch::default,
-                |scratch, ((entries, features), pairs)| {
-                    scratch.sort(entries, features, pairs, channels)
-                },
-            );
+            .map(|((entries, features), pairs)| TileList {
+                entries,
+                features,
+                pairs,
+            })
+            .collect()
     }
+}
+
+/// One tile's part of the lists.
+struct TileList<'a> {
+    entries: &'a mut [Entry],
+    features: &'a mut [f32],
+    pairs: &'a mut [u32],
 }
 
 /// One thread's copies of a tile's list while it is permuted.
@@ -574,13 +589,12 @@ struct TileScratch {
 }
 
 impl TileScratch {
-    fn sort(
-        &mut self,
-        entries: &mut [Entry],
-        features: &mut [f32],
-        pairs: &mut [u32],
-        channels: usize,
-    ) {
+    fn sort(&mut self, tile: TileList, channels: usize) {
+        let TileList {
+            entries,
+            features,
+            pairs,
+        } = tile;
         self.keys.clear();
         self.keys.extend(
             entries
