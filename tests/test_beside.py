@@ -111,3 +111,23 @@ def test_the_static_parts_layers_change_no_motion_gradient():
     assert layered[0] == full[0]
     assert torch.equal(layered[1], full[1]) and torch.equal(layered[2], full[2])
     assert float(full[1].abs().max()) > 0
+
+
+def test_static_layers_stop_at_their_budget():
+    """Past their byte budget no more layers are made: those cameras render in full, with the
+    same terms and motion gradients."""
+    s, target, backgrounds = wall_and_planks(3)
+    qr = s.motion.qr
+    held = s.held()
+    held.layers.budget = 1  # the first layer already holds more
+
+    def step() -> tuple[dict, torch.Tensor]:
+        qr.grad = None
+        terms = s.held_image_step(s.motion, target, backgrounds)
+        return {k: float(v.detach()) for k, v in terms.items()}, qr.grad.clone()
+
+    budgeted = step()
+    assert len(held.layers) == 1 and held.layers.nbytes() > 1
+    held.layers = None
+    full = step()
+    assert budgeted[0] == full[0] and torch.equal(budgeted[1], full[1])

@@ -4,6 +4,7 @@ posed, or carrying other per-Gaussian features such as part logits) seen from on
 from __future__ import annotations
 
 import functools
+import threading
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -84,15 +85,24 @@ def render(
     return draw(*arrays, camera, background=bg, depth=depth, held=held, **extra_args)
 
 
+# What the static layers of one model may hold at most: past it, further cameras render in
+# full (at 128² a layer of a 50k-Gaussian static part holds ~5.4 MiB, 64 cameras ~345 MiB).
+LAYER_BUDGET_BYTES = 2 << 30
+
+
 class StaticLayers:
     """The static layers (gear.splat.static_layer) of the first `count` Gaussians of a model
     whose first `count` stay as they are (e.g. a static part held while the others move),
-    one per camera and depth setting, each made at its first render. Empty without the
-    executor's layers (the torch reference, the wgpu kernels)."""
+    one per camera, depth setting and channel count, each made at its first render while
+    they hold less than `budget` bytes. Empty without the executor's layers (the torch
+    reference, the wgpu kernels)."""
 
-    def __init__(self, count: int) -> None:
+    def __init__(self, count: int, budget: int = LAYER_BUDGET_BYTES) -> None:
         self.count = count
-        self._layers: dict[tuple[int, bool], tuple[Camera, Any]] = {}
+        self.budget = budget
+        self._layers: dict[tuple[int, bool, int], tuple[Camera, Any]] = {}
+        self._bytes = 0
+        self._making = threading.Lock()
 
     @staticmethod
     def serve(draw: Callable) -> bool:
@@ -108,15 +118,21 @@ class StaticLayers:
     def layer(self, arrays: tuple[torch.Tensor, ...], camera: Camera, depth: bool) -> Any:
         """The layer for `camera`, made from the first `count` rows of `arrays` (means, quats,
         log_scales, opacity logits, features) if it is not there yet; None where the executor
-        keeps no layers (wgpu)."""
-        key = (id(camera), depth)
-        if key not in self._layers:
-            from gear.splat import static_layer
+        keeps no layers (wgpu) or the layers made hold the budget already."""
+        key = (id(camera), depth, arrays[-1].shape[1])
+        # One layer made at a time: renders beside each other (the M-step's views) neither
+        # make one twice nor both pass the budget.
+        with self._making:
+            if key not in self._layers:
+                if self._bytes >= self.budget:
+                    return None
+                from gear.splat import static_layer
 
-            made = static_layer(*(t.detach()[: self.count] for t in arrays), camera, depth)
-            # The camera is kept with its layer so that its id cannot be reused meanwhile.
-            self._layers[key] = (camera, made)
-        return self._layers[key][1]
+                made = static_layer(*(t.detach()[: self.count] for t in arrays), camera, depth)
+                # The camera is kept with its layer so that its id cannot be reused meanwhile.
+                self._layers[key] = (camera, made)
+                self._bytes += made.nbytes if made is not None else 0
+            return self._layers[key][1]
 
     def __len__(self) -> int:
         """Layers made so far."""
@@ -124,4 +140,4 @@ class StaticLayers:
 
     def nbytes(self) -> int:
         """Bytes the layers hold."""
-        return sum(layer.nbytes for _, layer in self._layers.values() if layer is not None)
+        return self._bytes
