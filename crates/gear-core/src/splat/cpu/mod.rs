@@ -164,12 +164,15 @@ pub fn backward(
     backward_in(global_pool()?, state, grads, features_grad, held)
 }
 
-/// Bytes a [`backward`] of `state` allocates at its peak (pair records and the outputs).
+/// Bytes a [`backward`] of `state` allocates at its peak (pair records and the outputs), with
+/// no more Gaussians held than it must.
 pub fn backward_bytes(state: &CpuState, features_grad: bool) -> u64 {
     let channels = state.bins.channels;
     let stride = GEOMETRY + if features_grad { channels } else { 0 };
     let n = state.bins.len;
-    4 * (state.bins.pairs() * stride + n * (11 + channels) + n) as u64
+    // Records for the pairs of the Gaussians a backward can give gradients to.
+    let pairs = state.bins.pair_count() - state.bins.pair_offsets[state.floor] as usize;
+    4 * (pairs * stride + n * (11 + channels) + n) as u64
 }
 
 /// [`backward`] in the thread pool `pool`.
