@@ -1,10 +1,9 @@
 //! Stage 1 and the binning of the CPU executor: project every Gaussian (in parallel) and
 //! build each tile's list of the Gaussians whose 1/255 ellipse spans a pixel centre of one of
 //! its rows, with the mask of those rows, in depth order (ties by index, as the GPU's stable
-//! radix sort and the reference order them). The pairs are scattered to their tiles in
-//! Gaussian order (a counting sort by tile, whose reads all stream) and each tile's list is
-//! then sorted by depth, in parallel over the tiles. Each entry records its pair number, so
-//! the backward can reduce each Gaussian's per-pair gradients in a fixed order.
+//! radix sort and the reference order them; the lists themselves: `lists`). Each entry
+//! records its pair number, so the backward can reduce each Gaussian's per-pair gradients in
+//! a fixed order.
 
 // Lane loops index several [f32; 8] arrays in step: the form the compiler vectorises.
 #![allow(clippy::needless_range_loop)]
@@ -13,6 +12,7 @@ use rayon::prelude::*;
 
 use super::lanes::LANES as BLOCK;
 use super::lanes::{array, mask, select, with_avx2, Lanes, LANES};
+use super::lists::{Entry, Listed, Lists};
 use super::project::{Prepared, Screen, View};
 use super::spares::Spares;
 use super::TILE;
@@ -25,22 +25,6 @@ const SPAN_SLACK: f32 = constants::ROW_SPAN_SLACK as f32;
 /// Pixel rows of slack above and below the ellipse's vertical extent; the rows inside it are
 /// then tested one by one.
 const ROW_SLACK: f32 = 1.0;
-
-/// A list entry: what the blend reads of a Gaussian (the contract's evaluation: mean, conic,
-/// opacity, depth) and the rows of the tile that its ellipse spans.
-#[derive(Debug, Clone, Copy, Default)]
-pub(super) struct Entry {
-    pub u: f32,
-    pub v: f32,
-    /// Conic a, b, c.
-    pub a: f32,
-    pub b: f32,
-    pub c: f32,
-    pub opacity: f32,
-    pub z: f32,
-    /// Bit r set where the ellipse spans a pixel centre of the tile's row r (inside the image).
-    pub rows: u32,
-}
 
 impl Entry {
     fn new(p: &Screen) -> Self {
@@ -178,6 +162,16 @@ impl Bins {
         self.pair_offsets[self.len] as usize
     }
 
+    /// The tile lists, to read.
+    pub fn listed(&self) -> Listed<'_> {
+        Listed {
+            offsets: &self.tile_offsets,
+            entries: &self.entries,
+            features: &self.entry_features,
+            pairs: &self.entry_pairs,
+        }
+    }
+
     /// The list range of tile `t`.
     pub fn range(&self, t: usize) -> std::ops::Range<usize> {
         self.tile_offsets[t] as usize..self.tile_offsets[t + 1] as usize
@@ -205,17 +199,17 @@ impl Bins {
 
 impl Drop for Bins {
     fn drop(&mut self) {
-        ENTRIES.keep(std::mem::take(&mut self.entries));
-        ENTRY_FEATURES.keep(std::mem::take(&mut self.entry_features));
-        ENTRY_PAIRS.keep(std::mem::take(&mut self.entry_pairs));
+        Lists {
+            entries: std::mem::take(&mut self.entries),
+            features: std::mem::take(&mut self.entry_features),
+            pairs: std::mem::take(&mut self.entry_pairs),
+        }
+        .keep();
         PREPARED.keep(std::mem::take(&mut self.prepared));
     }
 }
 
-// Buffers of earlier passes (see `spares`): the lists, and binning's own scratch.
-static ENTRIES: Spares<Entry> = Spares::new();
-static ENTRY_FEATURES: Spares<f32> = Spares::new();
-static ENTRY_PAIRS: Spares<u32> = Spares::new();
+// Buffers of earlier passes (see `spares`): binning's own scratch.
 static PREPARED: Spares<Prepared> = Spares::new();
 static SPLATS: Spares<Entry> = Spares::new();
 static PAIRS: Spares<[u32; 2]> = Spares::new();
@@ -375,7 +369,8 @@ pub(super) fn bin(gaussians: &Gaussians, camera: &Camera) -> Bins {
     let pair_offsets = pair_offsets(&[0], &projected.counts);
     let tile_offsets = tile_offsets(&projected.pairs, grid.tile_count());
     let mut lists = Lists::take(projected.pairs.len(), channels);
-    lists.fill(&tile_offsets, &projected, &pair_offsets, gaussians, 0);
+    let splats = (&projected.splats[..], &projected.pairs[..]);
+    lists.fill(&tile_offsets, splats, &pair_offsets, gaussians, 0);
     lists.sort_by_depth(&tile_offsets, channels);
     Bins::assemble(grid, channels, lists, tile_offsets, pair_offsets, projected)
 }
@@ -395,7 +390,8 @@ pub(super) fn bin_over(base: &Bins, gaussians: &Gaussians, camera: &Camera) -> (
     let tile_count = grid.tile_count();
     let own_offsets = tile_offsets(&projected.pairs, tile_count);
     let mut own = Lists::take(projected.pairs.len(), channels);
-    own.fill(&own_offsets, &projected, &pair_offsets, gaussians, from);
+    let splats = (&projected.splats[..], &projected.pairs[..]);
+    own.fill(&own_offsets, splats, &pair_offsets, gaussians, from);
     own.sort_by_depth(&own_offsets, channels);
     let touched: Vec<bool> = own_offsets.windows(2).map(|w| w[1] > w[0]).collect();
     let mut tile_offsets = vec![0u32; tile_count + 1];
@@ -408,7 +404,7 @@ pub(super) fn bin_over(base: &Bins, gaussians: &Gaussians, camera: &Camera) -> (
         tile_offsets[t + 1] = tile_offsets[t] + len;
     }
     let mut lists = Lists::take(tile_offsets[tile_count] as usize, channels);
-    lists.merge(&tile_offsets, base, &own, &own_offsets);
+    lists.merge(&tile_offsets, &base.listed(), &own, &own_offsets, channels);
     own.keep();
     let bins = Bins::assemble(grid, channels, lists, tile_offsets, pair_offsets, projected);
     (bins, touched)
@@ -441,198 +437,4 @@ impl Bins {
             prepared: projected.prepared,
         }
     }
-}
-
-/// The tile lists under construction: entry e of every array belongs to the same pair.
-struct Lists {
-    entries: Vec<Entry>,
-    /// Entries x channels.
-    features: Vec<f32>,
-    /// The pair number of each entry.
-    pairs: Vec<u32>,
-}
-
-impl Lists {
-    /// Lists for `pairs` entries of `channels` features, in kept buffers.
-    fn take(pairs: usize, channels: usize) -> Self {
-        Lists {
-            entries: ENTRIES.take(pairs, Entry::default()),
-            features: ENTRY_FEATURES.take(pairs * channels, 0.0),
-            pairs: ENTRY_PAIRS.take(pairs, 0),
-        }
-    }
-
-    /// Returns the buffers to the kept ones.
-    fn keep(self) {
-        ENTRIES.keep(self.entries);
-        ENTRY_FEATURES.keep(self.features);
-        ENTRY_PAIRS.keep(self.pairs);
-    }
-
-    /// Scatters the pairs of Gaussians `from..` to their tiles walking the Gaussians in index
-    /// order, so that every read streams through memory (a walk in depth order gathers each
-    /// Gaussian from a random place, and cost most of the binning). Each list comes out in
-    /// index order.
-    fn fill(
-        &mut self,
-        tile_offsets: &[u32],
-        projected: &Projected,
-        pair_offsets: &[u32],
-        gaussians: &Gaussians,
-        from: usize,
-    ) {
-        let channels = gaussians.channels;
-        // `projected.pairs` starts at Gaussian `from`'s first pair.
-        let first_pair = pair_offsets[from] as usize;
-        let mut cursor = tile_offsets[..tile_offsets.len() - 1].to_vec();
-        for (g, splat) in projected.splats.iter().enumerate().skip(from) {
-            let features = &gaussians.features[g * channels..(g + 1) * channels];
-            for pair in pair_offsets[g] as usize..pair_offsets[g + 1] as usize {
-                let [t, rows] = projected.pairs[pair - first_pair];
-                let e = cursor[t as usize] as usize;
-                cursor[t as usize] += 1;
-                self.entries[e] = Entry { rows, ..*splat };
-                self.pairs[e] = pair as u32;
-                self.features[e * channels..(e + 1) * channels].copy_from_slice(features);
-            }
-        }
-    }
-
-    /// Fills each tile's list (ranges `tile_offsets`, empty or as long as both) with the
-    /// merge of `base`'s list and `own`'s (ranges `own_offsets`), both in depth order: by
-    /// depth, `base`'s entries first on ties (their Gaussians come first). In parallel over
-    /// the tiles.
-    fn merge(&mut self, tile_offsets: &[u32], base: &Bins, own: &Lists, own_offsets: &[u32]) {
-        let channels = base.channels;
-        self.by_tile(tile_offsets, channels)
-            .into_par_iter()
-            .enumerate()
-            .filter(|(_, tile)| !tile.entries.is_empty())
-            .for_each(|(t, tile)| {
-                let TileList {
-                    entries,
-                    features,
-                    pairs,
-                } = tile;
-                let from_base = base.range(t);
-                let from_own = own_offsets[t] as usize..own_offsets[t + 1] as usize;
-                let (mut b, mut o) = (from_base.start, from_own.start);
-                for e in 0..entries.len() {
-                    let take_base = o == from_own.end
-                        || (b < from_base.end
-                            && base.entries[b].z.to_bits() <= own.entries[o].z.to_bits());
-                    let (list, k) = if take_base {
-                        b += 1;
-                        (
-                            (&base.entries, &base.entry_features, &base.entry_pairs),
-                            b - 1,
-                        )
-                    } else {
-                        o += 1;
-                        ((&own.entries, &own.features, &own.pairs), o - 1)
-                    };
-                    entries[e] = list.0[k];
-                    pairs[e] = list.2[k];
-                    features[e * channels..(e + 1) * channels]
-                        .copy_from_slice(&list.1[k * channels..(k + 1) * channels]);
-                }
-            });
-    }
-
-    /// Sorts every tile's list (in index order) by depth, in parallel over the tiles; ties
-    /// keep index order, as in the GPU's stable sort and the reference. z > 0, so its bits
-    /// order like the floats.
-    fn sort_by_depth(&mut self, tile_offsets: &[u32], channels: usize) {
-        self.by_tile(tile_offsets, channels)
-            .into_par_iter()
-            .for_each_init(TileScratch::default, |scratch, tile| {
-                scratch.sort(tile, channels)
-            });
-    }
-
-    /// Each tile's part of the lists (ranges `tile_offsets`), to work on the tiles in parallel.
-    fn by_tile(&mut self, tile_offsets: &[u32], channels: usize) -> Vec<TileList<'_>> {
-        let lengths: Vec<usize> = tile_offsets
-            .windows(2)
-            .map(|w| (w[1] - w[0]) as usize)
-            .collect();
-        let entries = split_by_lengths(&mut self.entries, &lengths, 1);
-        let features = split_by_lengths(&mut self.features, &lengths, channels);
-        let pairs = split_by_lengths(&mut self.pairs, &lengths, 1);
-        entries
-            .into_iter()
-            .zip(features)
-            .zip(pairs)
-            .map(|((entries, features), pairs)| TileList {
-                entries,
-                features,
-                pairs,
-            })
-            .collect()
-    }
-}
-
-/// One tile's part of the lists.
-struct TileList<'a> {
-    entries: &'a mut [Entry],
-    features: &'a mut [f32],
-    pairs: &'a mut [u32],
-}
-
-/// One thread's copies of a tile's list while it is permuted.
-#[derive(Default)]
-struct TileScratch {
-    keys: Vec<u64>,
-    entries: Vec<Entry>,
-    features: Vec<f32>,
-    pairs: Vec<u32>,
-}
-
-impl TileScratch {
-    fn sort(&mut self, tile: TileList, channels: usize) {
-        let TileList {
-            entries,
-            features,
-            pairs,
-        } = tile;
-        self.keys.clear();
-        self.keys.extend(
-            entries
-                .iter()
-                .enumerate()
-                .map(|(i, e)| (u64::from(e.z.to_bits()) << 32) | i as u64),
-        );
-        if self.keys.windows(2).all(|w| w[0] <= w[1]) {
-            return;
-        }
-        self.keys.sort_unstable();
-        self.entries.clear();
-        self.entries.extend_from_slice(entries);
-        self.features.clear();
-        self.features.extend_from_slice(features);
-        self.pairs.clear();
-        self.pairs.extend_from_slice(pairs);
-        for (to, &key) in self.keys.iter().enumerate() {
-            let from = key as u32 as usize;
-            entries[to] = self.entries[from];
-            pairs[to] = self.pairs[from];
-            features[to * channels..(to + 1) * channels]
-                .copy_from_slice(&self.features[from * channels..(from + 1) * channels]);
-        }
-    }
-}
-
-/// `slice` cut into consecutive pieces of `lengths[i] * stride` elements.
-fn split_by_lengths<'a, T>(
-    mut slice: &'a mut [T],
-    lengths: &[usize],
-    stride: usize,
-) -> Vec<&'a mut [T]> {
-    let mut pieces = Vec::with_capacity(lengths.len());
-    for &length in lengths {
-        let (piece, rest) = slice.split_at_mut(length * stride);
-        pieces.push(piece);
-        slice = rest;
-    }
-    pieces
 }

@@ -10,11 +10,11 @@
 
 use rayon::prelude::*;
 
-use super::bins::Entry;
 use super::blend::{PixelState, Row, Scene};
 use super::lanes::{
     array, channels, evaluate, mask, masked, select, with_avx2, with_channels, Lanes, Mask, LANES,
 };
+use super::lists::Entry;
 use super::spares::Spares;
 use super::TILE;
 use crate::splat::constants::MAX_ALPHA;

@@ -5,7 +5,7 @@
 // Lane loops index several [f32; 8] arrays in step: the form the compiler vectorises.
 #![allow(clippy::needless_range_loop)]
 
-use super::bins::Entry;
+use super::lists::Entry;
 use crate::splat::constants::{MAX_ALPHA, MIN_ALPHA};
 
 /// Defines `fn $name(args) -> ret` calling `$body` (an `#[inline(always)]` function) compiled

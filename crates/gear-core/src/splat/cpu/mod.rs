@@ -15,6 +15,7 @@ mod blend;
 mod blend_backward;
 mod lanes;
 mod layer;
+mod lists;
 mod pool;
 mod project;
 mod spares;
