@@ -11,7 +11,7 @@ from gear.articulation import PartMotion
 from gear.config import make_config
 from gear.pipeline.stage2 import Stage2Result
 from gear.pipeline.stage3 import Refine
-from gear.pipeline.stage3.estep import anchor_term
+from gear.pipeline.stage3.estep import AnchorViews, anchor_term
 from gear.pipeline.stage3.refine import refine_state, resumed_refine_state
 from gear.splat_reference import rasterize_dense
 from gear.splats import rendering
@@ -42,7 +42,8 @@ def stage_with_a_stage1_error(anchor: str) -> tuple[Refine, torch.Tensor]:
 def test_a_stage1_error_costs_nothing_against_the_frozen_model(view_index):
     state, _ = stage_with_a_stage1_error("frozen")
     view = state.target_views[view_index]
-    term, _ = anchor_term(state, view_index, view, torch.zeros(3), state.gaussians.rgb())
+    term, _ = anchor_term(state, view_index, view, torch.zeros(3), state.gaussians.rgb(),
+                          AnchorViews.draw(state))
     assert term.item() < 1e-5
 
 
@@ -53,7 +54,7 @@ def test_the_canonical_images_pull_a_stage1_error_back():
     for _ in range(3):  # each call draws one canonical image
         g.optimizer.zero_grad(set_to_none=True)
         view = state.target_views[0]
-        term, _ = anchor_term(state, 0, view, torch.zeros(3), g.rgb())
+        term, _ = anchor_term(state, 0, view, torch.zeros(3), g.rgb(), AnchorViews.draw(state))
         assert term.item() > 1e-3  # the images see the plank elsewhere
         term.backward()
         grad = g["means"].grad[plank_ids].sum(0)
@@ -81,7 +82,8 @@ def test_only_the_frozen_anchor_keeps_and_checkpoints_a_copy_of_stage_1(anchor):
     resumed = resumed_refine_state(saved, coarse, {"start": views, "end": views}, cfg)
     assert (resumed.frozen is None) == (anchor == "images")
     index, view, bg = resumed.target_view()
-    assert torch.isfinite(anchor_term(resumed, index, view, bg, resumed.gaussians.rgb())[0])
+    views = AnchorViews.draw(resumed)
+    assert torch.isfinite(anchor_term(resumed, index, view, bg, resumed.gaussians.rgb(), views)[0])
 
 
 def test_an_unknown_anchor_is_refused_by_name():

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from gear.losses import region_pseudo_labels, sam_ce_loss
-from gear.pipeline.common import TrainView, image_terms
+from gear.pipeline.common import TrainView, image_terms, in_turn
 from gear.pipeline.stage3 import Refine, estep
 from gear.pipeline.stage3.shared import RefineState
 from gear.splat_reference import rasterize_dense
@@ -30,50 +30,55 @@ RTOL = 1e-5
 
 
 def reference_anchor_term(state: RefineState, index: int, view: TrainView, bg: torch.Tensor,
-                           rgb: torch.Tensor | None, logits: torch.Tensor | None = None):
+                           rgb: torch.Tensor | None, views: estep.AnchorViews):
     """estep.anchor_term (images) with its colours and the part logits in renders of their
     own: the colours over the background, the colours (no gradient) + logits over black."""
     c, g = state.config, state.gaussians
-    own = state.pick(state.canonical_views)
+    own = views.own
     out = rendering.render(g, own.camera, bg, features=rgb, depth=own.depth is not None)
     term = sum(image_terms(out, own, bg, c).values())
-    if logits is None or own.regions is None:
+    if views.regions is not own:
         return term, None
-    features = torch.cat([g.rgb().detach(), logits], dim=1)
-    both = rendering.render(g, own.camera, torch.zeros(3 + g.num_parts), features=features)
-    return term, (own, both.features[..., 3:])
+    return term, reference_logit_image(state, own)
 
 
-def reference_segmentation_terms(state: RefineState, logits: torch.Tensor,
-                                 part_image: estep.PartImage | None = None) -> dict:
-    """estep.segmentation_terms with the consistency term as written."""
+def reference_logit_image(state: RefineState, view: TrainView) -> torch.Tensor:
+    """The part logits rendered from `view` with the colours (no gradient) as the first
+    channels, over black."""
+    g = state.gaussians
+    features = torch.cat([g.rgb().detach(), g["logits"]], dim=1)
+    out = rendering.render(g, view.camera, torch.zeros(3 + g.num_parts), features=features)
+    return out.features[..., 3:]
+
+
+def reference_part_supervision(state: RefineState, view: TrainView,
+                               logit_image: torch.Tensor | None) -> torch.Tensor:
+    """estep.part_supervision with the logits rendered beside the colours when the anchor
+    did not render them."""
     c = state.config
-    neighbours = state.neighbours()
-    # The consistency term as written: mean over every (Gaussian, neighbour) pair.
-    diffs = [(logits - logits[nb]).norm(dim=1) for nb in neighbours.unbind(1)]
-    terms = {"knn": c.lambda_knn * torch.stack(diffs, dim=1).mean()}
-    if part_image is None:  # the anchor's view has no regions: one that has them, rendered
-        view = state.pick(state.region_views)
-        features = torch.cat([state.gaussians.rgb().detach(), logits], dim=1)
-        out = rendering.render(state.gaussians, view.camera,
-                               torch.zeros(3 + state.gaussians.num_parts), features=features)
-        part_image = view, out.features[..., 3:]
-    view, logit_image = part_image
+    if logit_image is None:  # the anchor's view has no regions: one that has them, rendered
+        logit_image = reference_logit_image(state, view)
     labels = region_pseudo_labels(
         torch.softmax(logit_image.detach(), dim=-1), view.regions,
         state.motion.prismatic, gamma=c.gamma_prism, min_conf=c.pseudo_min_conf,
         min_gap=c.pseudo_min_gap, min_area=c.pseudo_min_area,
     )
-    terms["sam"] = c.lambda_sam * sam_ce_loss(logit_image, labels, view.alpha > 0.5,
-                                              static_weight=c.static_class_weight)
-    return terms
+    return sam_ce_loss(logit_image, labels, view.alpha > 0.5,
+                       static_weight=c.static_class_weight)
+
+
+def reference_knn_consistency(logits: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
+    """The consistency term as written: mean over every (Gaussian, neighbour) pair."""
+    diffs = [(logits - logits[nb]).norm(dim=1) for nb in neighbours.unbind(1)]
+    return torch.stack(diffs, dim=1).mean()
 
 
 def reference_step(stage: Refine, it: int, monkeypatch: pytest.MonkeyPatch) -> dict:
     """One step of `stage` with the reference canonical terms in place of the fast ones."""
     with monkeypatch.context() as patched:
         patched.setattr(estep, "anchor_term", reference_anchor_term)
-        patched.setattr(estep, "segmentation_terms", reference_segmentation_terms)
+        patched.setattr(estep, "part_supervision", reference_part_supervision)
+        patched.setattr(estep, "fused_knn_consistency", reference_knn_consistency)
         return stage.step(it)
 
 
@@ -106,13 +111,13 @@ def test_refine_steps_match_the_straightforward_formulation(torch_renderer, monk
                                                             regions_on):
     fast, reference = stage(regions_on), stage(regions_on)
     shared = []  # per E-step of `fast`: did the anchor's render carry the part logits?
-    segmentation_terms = estep.segmentation_terms
+    part_supervision = estep.part_supervision
 
-    def spy(state, logits, part_image=None):
-        shared.append(part_image is not None)
-        return segmentation_terms(state, logits, part_image)
+    def spy(state, view, logit_image):
+        shared.append(logit_image is not None)
+        return part_supervision(state, view, logit_image)
 
-    monkeypatch.setattr(estep, "segmentation_terms", spy)
+    monkeypatch.setattr(estep, "part_supervision", spy)
     assert {"sam", "knn", "anchor"} <= set(fast.step(0))  # an E-step with every term
     reference_step(reference, 0, monkeypatch)
     for it in range(1, 6):  # E, M, M, E, E (em_interval = 2)
@@ -130,3 +135,18 @@ def test_refine_steps_match_the_straightforward_formulation(torch_renderer, monk
     untouched = stage()
     assert not torch.equal(untouched.gaussians["logits"], fast.gaussians["logits"])
     assert not torch.equal(untouched.motion.qd, fast.motion.qd)
+
+
+def test_the_halves_of_a_step_give_the_same_bits_beside_each_other_as_in_turn():
+    """An E-step's target and anchor halves run on two threads (common.map_beside) and the
+    anchor's gradients are added after the target's: the same bits as running them in turn,
+    on the native executor (which gives the same bits on any thread)."""
+    beside, in_order = stage(), stage()
+    for it in range(6):  # E, E, M, M, E, E (em_interval = 2)
+        got = beside.step(it)
+        with in_turn():
+            want = in_order.step(it)
+        assert got == want, it
+    for name, want in in_order.gaussians.params.items():
+        assert torch.equal(beside.gaussians[name], want), name
+    assert not torch.equal(stage().gaussians["logits"], beside.gaussians["logits"])

@@ -34,9 +34,11 @@ class _FusedDeform(torch.autograd.Function):
         softmax: bool,
     ) -> tuple[Tensor, Tensor]:
         arrays = [as_numpy(t) for t in (means, quats, weights, qr, qd)]
-        means_d, quats_d = _core.deform(*arrays, softmax)
+        means_d, quats_d, softmax_weights = _core.deform(*arrays, softmax)
         ctx.save_for_backward(means, quats, weights, qr, qd)
         ctx.softmax = softmax
+        # The per-Gaussian softmax, kept for the backward (which would compute it again).
+        ctx.softmax_weights = softmax_weights
         return torch.from_numpy(means_d), torch.from_numpy(quats_d)
 
     @staticmethod
@@ -51,6 +53,7 @@ class _FusedDeform(torch.autograd.Function):
         grads = _core.deform_backward(
             *[as_numpy(t) for t in inputs], as_numpy(gm.to(means.dtype)),
             as_numpy(gq.to(means.dtype)), wanted[3] or wanted[4], ctx.softmax,
+            ctx.softmax_weights,
         )
         return *(
             torch.from_numpy(g) if want and g is not None else None

@@ -35,7 +35,11 @@ impl<'py, T: Dtype + Real> Args<'py, T> {
         })
     }
 
-    fn input(&self, softmax: bool) -> PyResult<DeformInput<'_, T>> {
+    fn input<'a>(
+        &'a self,
+        softmax: bool,
+        softmax_weights: Option<&'a PyReadonlyArrayDyn<'py, T>>,
+    ) -> PyResult<DeformInput<'a, T>> {
         Ok(DeformInput {
             means: self.means.as_slice()?,
             quats: self.quats.as_slice()?,
@@ -43,6 +47,7 @@ impl<'py, T: Dtype + Real> Args<'py, T> {
             qr: self.qr.as_slice()?,
             qd: self.qd.as_slice()?,
             softmax,
+            softmax_weights: softmax_weights.map(|w| w.as_slice()).transpose()?,
         })
     }
 }
@@ -52,15 +57,19 @@ fn rows<'py, T: Dtype>(py: Python<'py>, v: Vec<T>, width: usize) -> PyResult<Arr
     Ok(PyArray1::from_vec(py, v).reshape([n, width])?.into_any())
 }
 
+type Deformed<'py> = (Array<'py>, Array<'py>, Option<Array<'py>>);
+
 fn forward<'py, T: Dtype + Real>(
     py: Python<'py>,
     arrays: [&Array<'py>; 5],
     softmax: bool,
-) -> PyResult<(Array<'py>, Array<'py>)> {
+) -> PyResult<Deformed<'py>> {
     let args = Args::<T>::new(arrays)?;
-    let input = args.input(softmax)?;
+    let k = args.qr.shape()[0];
+    let input = args.input(softmax, None)?;
     let out = guarded(py, || motion::forward(&input))?;
-    Ok((rows(py, out.means, 3)?, rows(py, out.quats, 4)?))
+    let weights = softmax.then(|| rows(py, out.weights, k)).transpose()?;
+    Ok((rows(py, out.means, 3)?, rows(py, out.quats, 4)?, weights))
 }
 
 type Gradients<'py> = (
@@ -76,15 +85,17 @@ fn backward<'py, T: Dtype + Real>(
     arrays: [&Array<'py>; 5],
     grad_means: &Array<'py>,
     grad_quats: &Array<'py>,
-    motion_grads: bool,
-    softmax: bool,
+    (motion_grads, softmax, softmax_weights): (bool, bool, Option<&Array<'py>>),
 ) -> PyResult<Gradients<'py>> {
     let args = Args::<T>::new(arrays)?;
     let n = args.means.shape()[0];
     let k = args.qr.shape()[0];
     let gm = array::<T>(grad_means, "grad_means", &[Dim::Fixed(n), Dim::Fixed(3)])?;
     let gq = array::<T>(grad_quats, "grad_quats", &[Dim::Fixed(n), Dim::Fixed(4)])?;
-    let input = args.input(softmax)?;
+    let given = softmax_weights
+        .map(|w| array::<T>(w, "softmax_weights", &[Dim::Fixed(n), Dim::Fixed(k)]))
+        .transpose()?;
+    let input = args.input(softmax, given.as_ref())?;
     let (gm, gq) = (gm.as_slice()?, gq.as_slice()?);
     let g = guarded(py, || motion::backward(&input, gm, gq, motion_grads))?;
     let motion = |v: Vec<T>| -> PyResult<Option<Array<'py>>> {
@@ -99,9 +110,10 @@ fn backward<'py, T: Dtype + Real>(
     ))
 }
 
-/// (means' [N, 3], quats' [N, 4]): Gaussians moved by the blend of the K part motions
-/// `qr`, `qd` [K, 4] with `weights` [N, K] (every array float32, or every one float64);
-/// with `softmax`, `weights` are logits whose per-Gaussian softmax gives the weights.
+/// (means' [N, 3], quats' [N, 4], softmax weights [N, K] or None): Gaussians moved by the
+/// blend of the K part motions `qr`, `qd` [K, 4] with `weights` [N, K] (every array float32,
+/// or every one float64); with `softmax`, `weights` are logits whose per-Gaussian softmax
+/// gives the weights, and the third output holds them (for `deform_backward`).
 #[pyfunction]
 #[pyo3(signature = (means, quats, weights, qr, qd, softmax = false))]
 fn deform<'py>(
@@ -112,7 +124,7 @@ fn deform<'py>(
     qr: &Array<'py>,
     qd: &Array<'py>,
     softmax: bool,
-) -> PyResult<(Array<'py>, Array<'py>)> {
+) -> PyResult<Deformed<'py>> {
     let arrays = [means, quats, weights, qr, qd];
     if has_dtype::<f64>(means) {
         forward::<f64>(py, arrays, softmax)
@@ -123,10 +135,11 @@ fn deform<'py>(
 
 /// Gradients (means, quats, weights, qr, qd) of a loss whose gradients with respect to the
 /// outputs of `deform` are `grad_means` [N, 3] and `grad_quats` [N, 4]; qr and qd are None
-/// unless `motion_grads`; with `softmax` (as in `deform`) the third is the logits' gradient.
+/// unless `motion_grads`; with `softmax` (as in `deform`) the third is the logits' gradient,
+/// and `softmax_weights` may give the weights `deform` returned (not computed again).
 #[pyfunction]
-#[pyo3(signature = (means, quats, weights, qr, qd, grad_means, grad_quats, motion_grads, softmax = false))]
-#[allow(clippy::too_many_arguments)] // the op's five inputs, two upstream gradients, two flags
+#[pyo3(signature = (means, quats, weights, qr, qd, grad_means, grad_quats, motion_grads, softmax = false, softmax_weights = None))]
+#[allow(clippy::too_many_arguments)] // the op's five inputs, two upstream gradients, two flags, the weights
 fn deform_backward<'py>(
     py: Python<'py>,
     means: &Array<'py>,
@@ -138,12 +151,14 @@ fn deform_backward<'py>(
     grad_quats: &Array<'py>,
     motion_grads: bool,
     softmax: bool,
+    softmax_weights: Option<&Array<'py>>,
 ) -> PyResult<Gradients<'py>> {
     let arrays = [means, quats, weights, qr, qd];
+    let flags = (motion_grads, softmax, softmax_weights);
     if has_dtype::<f64>(means) {
-        backward::<f64>(py, arrays, grad_means, grad_quats, motion_grads, softmax)
+        backward::<f64>(py, arrays, grad_means, grad_quats, flags)
     } else {
-        backward::<f32>(py, arrays, grad_means, grad_quats, motion_grads, softmax)
+        backward::<f32>(py, arrays, grad_means, grad_quats, flags)
     }
 }
 

@@ -45,6 +45,9 @@ pub struct DeformInput<'a, T> {
     /// backward's `weights` gradient is the logits'. (A softmax over K = 2 columns costs
     /// torch more than this whole op: its kernel is slow along a short last dimension.)
     pub softmax: bool,
+    /// With `softmax`, optionally the weights the forward returned for these logits
+    /// ([`Deformed::weights`]): the backward reads them instead of computing them again.
+    pub softmax_weights: Option<&'a [T]>,
 }
 
 /// Deformed means [N, 3] and rotations [N, 4].
@@ -52,6 +55,9 @@ pub struct DeformInput<'a, T> {
 pub struct Deformed<T> {
     pub means: Vec<T>,
     pub quats: Vec<T>,
+    /// With `softmax`, each Gaussian's weights [N, K] (the softmax of its logits), for the
+    /// backward's [`DeformInput::softmax_weights`]; empty otherwise.
+    pub weights: Vec<T>,
 }
 
 /// Gradients shaped like the inputs; `qr`, `qd` are empty when the motions are held.
@@ -95,6 +101,14 @@ impl<T: Real> DeformInput<'_, T> {
             ("quats", self.quats.len(), 4 * n),
             ("weights", self.weights.len(), k * n),
         ];
+        let given = self.softmax_weights.map(|w| w.len());
+        if given.is_some_and(|len| !self.softmax || len != k * n) {
+            return Err(invalid(format!(
+                "deform: softmax_weights must come with softmax and hold {} values, got {}",
+                k * n,
+                given.unwrap_or(0)
+            )));
+        }
         if let Some((name, got, want)) = expected.iter().find(|(_, got, want)| got != want) {
             return Err(invalid(format!(
                 "deform: {name} must hold {want} values for {n} Gaussians and {k} parts, got {got}"
@@ -118,6 +132,9 @@ impl<T: Real> DeformInput<'_, T> {
         let row = &self.weights[k * i..k * (i + 1)];
         if !self.softmax {
             return row;
+        }
+        if let Some(given) = self.softmax_weights {
+            return &given[k * i..k * (i + 1)];
         }
         // The largest logit subtracted first: every exponential is at most 1, none overflows.
         let top = row.iter().fold(T::neg_infinity(), |m, &v| m.max(v));
@@ -185,26 +202,37 @@ pub fn forward<T: Real>(input: &DeformInput<'_, T>) -> Result<Deformed<T>> {
     let chunks = in_chunks(input.len(), |range| {
         let mut means = Vec::with_capacity(3 * range.len());
         let mut quats = Vec::with_capacity(4 * range.len());
+        let mut softmax = Vec::with_capacity(if input.softmax { k * range.len() } else { 0 });
         let mut weights = vec![T::zero(); k];
         for i in range {
+            let w = input.weights_of(i, &mut weights);
             let (m, q) = forward_one(
                 &vec3(&input.means[3 * i..]),
                 &quat4(&input.quats[4 * i..]),
-                input.weights_of(i, &mut weights),
+                w,
                 &motions,
             );
             means.extend_from_slice(&m);
             quats.extend_from_slice(&q);
+            if input.softmax {
+                softmax.extend_from_slice(w);
+            }
         }
-        (means, quats)
+        (means, quats, softmax)
     })?;
     let mut out = Deformed {
         means: Vec::with_capacity(input.means.len()),
         quats: Vec::with_capacity(input.quats.len()),
+        weights: Vec::with_capacity(if input.softmax {
+            input.weights.len()
+        } else {
+            0
+        }),
     };
-    for (means, quats) in chunks {
+    for (means, quats, weights) in chunks {
         out.means.extend_from_slice(&means);
         out.quats.extend_from_slice(&quats);
+        out.weights.extend_from_slice(&weights);
     }
     Ok(out)
 }

@@ -27,6 +27,7 @@ impl<T: Copy> Scene<T> {
             qr: &self.qr,
             qd: &self.qd,
             softmax: self.softmax,
+            softmax_weights: None,
         }
     }
 
@@ -134,6 +135,60 @@ fn gradients_match_finite_differences() {
             }
         }
     }
+}
+
+/// The backward given the softmax weights the forward returned: the same bits as computing
+/// them again; and they are the softmax of the logits. Such weights without `softmax`, or of
+/// the wrong length, are refused.
+#[test]
+fn the_forwards_softmax_weights_serve_the_backward() {
+    let scene = random_logit_scene(13, 9000, 4).map(|v| v as f32);
+    let out = forward(&scene.input()).unwrap();
+    assert_eq!(out.weights.len(), scene.weights.len());
+    for (row, logits) in out
+        .weights
+        .chunks_exact(4)
+        .zip(scene.weights.chunks_exact(4))
+    {
+        let total: f64 = logits.iter().map(|&v| f64::from(v).exp()).sum();
+        for (&w, &l) in row.iter().zip(logits) {
+            assert!((f64::from(w) - f64::from(l).exp() / total).abs() < 1e-6);
+        }
+    }
+    let mut rng = fastrand::Rng::with_seed(2);
+    let gm: Vec<f32> = (0..scene.means.len()).map(|_| rng.f32() - 0.5).collect();
+    let gq: Vec<f32> = (0..scene.quats.len()).map(|_| rng.f32() - 0.5).collect();
+    let again = backward(&scene.input(), &gm, &gq, true).unwrap();
+    let given = DeformInput {
+        softmax_weights: Some(&out.weights),
+        ..scene.input()
+    };
+    let reused = backward(&given, &gm, &gq, true).unwrap();
+    let bits = |g: &DeformGradients<f32>| -> Vec<u32> {
+        [&g.means, &g.quats, &g.weights, &g.qr, &g.qd]
+            .iter()
+            .flat_map(|v| v.iter().map(|x| x.to_bits()))
+            .collect()
+    };
+    assert_eq!(bits(&reused), bits(&again));
+    let without_softmax = DeformInput {
+        softmax: false,
+        ..given
+    };
+    let short = DeformInput {
+        softmax_weights: Some(&out.weights[1..]),
+        ..given
+    };
+    for bad in [without_softmax, short] {
+        let err = backward(&bad, &gm, &gq, true).unwrap_err().to_string();
+        assert!(
+            err.contains("softmax_weights must come with softmax"),
+            "{err}"
+        );
+    }
+    // Without logits there are no weights to hand on.
+    let plain = random_scene(13, 10, 2);
+    assert!(forward(&plain.input()).unwrap().weights.is_empty());
 }
 
 #[test]
