@@ -20,6 +20,8 @@ from gear.metrics import (
     psnr,
     rotation_angle_deg,
     rotation_matrix,
+    same_motion_groups,
+    untie_same_motions,
 )
 
 
@@ -179,6 +181,35 @@ def test_type_and_count_mismatches_reported():
     assert extra.pairs == [(0, 1)]
     assert extra.errors[0]["geo_dist"] == pytest.approx(10.0)
     assert extra.unmatched_pred == [0, 2] and extra.type_mismatches == []
+
+
+def test_predictions_of_one_motion_are_assigned_by_where_the_parts_are():
+    """Two drawers of a column pulled by the same travel are one motion: the joint errors
+    cannot tell them apart, the parts' centres do. A third joint, and groups whose centres
+    are missing, stay as matched."""
+    gts = [gt_joint("prismatic", [0, -1, 0], [0, 0, 0.2], 0.25),
+           gt_joint("revolute", [0, 0, 1], [0.5, 0, 0], 40.0),
+           gt_joint("prismatic", [0, -1, 0], [0, 0, 0.6], 0.25)]
+    assert same_motion_groups(gts) == [[0, 2]]
+    # The upper drawer's prediction slides 0.249 (closer to both truths than 0.2535), so the
+    # joint errors match it to the lower drawer.
+    preds = [prismatic([0, -1, 0], 0.2535), revolute([0, 0, 1], [0.5, 0, 0], 40.5),
+             prismatic([0, -1, 0], 0.249)]
+    m = match_parts(preds, gts)
+    assert m.pairs == [(0, 2), (1, 1), (2, 0)]
+    gt_centres = {0: np.array([0, -0.1, 0.2]), 1: np.array([0.3, 0, 0.4]),
+                  2: np.array([0, -0.1, 0.6])}
+    pred_centres = {0: np.array([0, -0.1, 0.21]), 1: np.array([0.3, 0, 0.4]),
+                    2: np.array([0, -0.1, 0.59])}
+    untied = untie_same_motions(m, preds, gts, pred_centres, gt_centres)
+    assert untied.pairs == [(0, 0), (1, 1), (2, 2)]
+    assert untied.errors[0]["geo_dist"] == pytest.approx(0.0035)
+    assert untied.errors[2]["geo_dist"] == pytest.approx(0.001)
+    assert untied.errors[1] == m.errors[1]
+    assert untie_same_motions(m, preds, gts, {0: pred_centres[0]}, gt_centres) is m
+    # Different travels are different motions: nothing to untie.
+    gts[2] = gt_joint("prismatic", [0, -1, 0], [0, 0, 0.6], 0.12)
+    assert same_motion_groups(gts) == []
 
 
 def test_match_with_nothing_predicted():

@@ -19,7 +19,14 @@ from PIL import Image
 
 from gear.data import Scene, load_scene
 from gear.data.scene import BACKGROUND_PART, STATES
-from gear.metrics import Matching, chamfer, match_parts, part_iou, psnr
+from gear.metrics import (
+    Matching,
+    chamfer,
+    match_parts,
+    part_iou,
+    psnr,
+    untie_same_motions,
+)
 
 BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
 _UNMATCHED_LABEL = 200  # predicted parts with no GT joint are relabelled 200, 201, ... (not GT ids)
@@ -46,6 +53,8 @@ def evaluate(out_dir: str | Path, scene_dir: str | Path, samples: int = 10000, s
             matching = match_parts(pred_joints, scene.gt.joints)
         except ValueError as err:
             raise ValueError(f"{out_dir / 'joints.json'}: {err}") from err
+        matching = untie_same_motions(matching, pred_joints, scene.gt.joints,
+                                      *_part_centres(out_dir, scene))
         result.update(_joint_summary(matching, pred_joints, scene.gt.joints))
     if scene.gt is not None:
         result.update(_chamfer_summary(out_dir, scene, matching, samples, seed, skipped))
@@ -53,6 +62,30 @@ def evaluate(out_dir: str | Path, scene_dir: str | Path, samples: int = 10000, s
     result.update(_psnr_summary(out_dir, scene, BACKGROUNDS[background], skipped))
     result["timings"] = _read_timings(out_dir, skipped)
     return result
+
+
+def _part_centres(out_dir: Path, scene: Scene) -> tuple[dict[int, np.ndarray],
+                                                         dict[int, np.ndarray]]:
+    """Centres of the predicted parts' meshes (by joint index) and of the ground truth's (by
+    GT joint index), in the first state with GT part meshes; what is missing is left out."""
+    assert scene.gt is not None
+    for state in STATES:
+        gt_files = scene.gt.meshes.get(state, {})
+        gt = {g: _centre(gt_files.get(f"part_{g}")) for g in range(len(scene.gt.joints))}
+        if any(c is not None for c in gt.values()):
+            folder = out_dir / "meshes" / state
+            pred = {int(path.stem.removeprefix("part_")): _centre(path)
+                    for path in folder.glob("part_*.ply")
+                    if path.stem.removeprefix("part_").isdigit()}
+            return ({k: c for k, c in pred.items() if c is not None},
+                    {k: c for k, c in gt.items() if c is not None})
+    return {}, {}
+
+
+def _centre(path: Path | None) -> np.ndarray | None:
+    """The area-weighted centre of the mesh at `path` (None: no such mesh)."""
+    mesh = load_mesh(Path(path)) if path is not None else None
+    return None if mesh is None else np.asarray(mesh.centroid)
 
 
 def _read_timings(out_dir: Path, skipped: list[str]) -> dict[str, float] | None:

@@ -202,6 +202,62 @@ def match_parts(pred_joints: Sequence[Any], gt_joints: Sequence[Any]) -> Matchin
     )
 
 
+# Ground-truth joints whose errors against each other all lie below these are one motion (two
+# drawers of a column pulled by the same travel along the same axis: a slide has no position):
+# no joint error tells which of their predictions is which.
+SAME_MOTION_TOLERANCE = {"axis_ang": 1e-3, "axis_pos": 1e-4, "geo_dist": 1e-4}
+
+
+def same_motion_groups(gt_joints: Sequence[Any]) -> list[list[int]]:
+    """Groups (of two or more) of ground-truth joints that are one motion, each in index
+    order (SAME_MOTION_TOLERANCE; types equal)."""
+    joints = [Joint.from_any(g, f"gt joint {i}") for i, g in enumerate(gt_joints)]
+    groups: list[list[int]] = []
+    for i, joint in enumerate(joints):
+        for group in groups:
+            errors = joint_errors(joint, joints[group[0]])
+            if errors["type_match"] and all(errors[k] <= tol
+                                            for k, tol in SAME_MOTION_TOLERANCE.items()):
+                group.append(i)
+                break
+        else:
+            groups.append([i])
+    return [g for g in groups if len(g) > 1]
+
+
+def untie_same_motions(matching: Matching, pred_joints: Sequence[Any], gt_joints: Sequence[Any],
+                       pred_centres: Mapping[int, np.ndarray],
+                       gt_centres: Mapping[int, np.ndarray]) -> Matching:
+    """`matching` with the predictions matched to each group of ground-truth joints that are
+    one motion (same_motion_groups) reassigned among that group by where the parts are: the
+    assignment with the smallest summed distance between predicted and true part centres
+    (`pred_centres` by prediction index, `gt_centres` by GT joint index). A group with a part
+    whose centre is missing, or with fewer than two matched joints, is left as it is."""
+    pred_for = matching.pred_for_gt()
+    for group in same_motion_groups(gt_joints):
+        members = [g for g in group if g in pred_for]
+        if len(members) < 2 or any(g not in gt_centres or pred_for[g] not in pred_centres
+                                   for g in members):
+            continue
+        preds = [pred_for[g] for g in members]
+        distance = np.array([[np.linalg.norm(np.asarray(pred_centres[p]) - gt_centres[g])
+                              for p in preds] for g in members])
+        rows, cols = linear_sum_assignment(distance)
+        pred_for.update({members[r]: preds[c] for r, c in zip(rows, cols, strict=True)})
+    if pred_for == matching.pred_for_gt():
+        return matching
+    pairs = sorted(pred_for.items())
+    pred = [Joint.from_any(p, f"joints[{i}]") for i, p in enumerate(pred_joints)]
+    gt = [Joint.from_any(g, f"gt joint {i}") for i, g in enumerate(gt_joints)]
+    errors = [joint_errors(pred[p], gt[g]) for g, p in pairs]
+    return Matching(
+        pairs=pairs, errors=errors,
+        type_mismatches=[(g, p) for (g, p), e in zip(pairs, errors, strict=True)
+                         if not e["type_match"]],
+        unmatched_gt=matching.unmatched_gt, unmatched_pred=matching.unmatched_pred,
+    )
+
+
 def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int) -> np.ndarray:
     """`n` points uniformly distributed over the mesh surface (area-weighted), reproducibly."""
     if mesh is None or len(mesh.faces) == 0 or mesh.area <= 0:
