@@ -50,11 +50,9 @@ def evaluate(out_dir: str | Path, scene_dir: str | Path, samples: int = 10000, s
                        "distances cannot be computed")
     elif pred_joints is not None:
         try:
-            matching = match_parts(pred_joints, scene.gt.joints)
+            matching = match_joints(out_dir, scene, pred_joints)
         except ValueError as err:
             raise ValueError(f"{out_dir / 'joints.json'}: {err}") from err
-        matching = untie_same_motions(matching, pred_joints, scene.gt.joints,
-                                      *_part_centres(out_dir, scene))
         result.update(_joint_summary(matching, pred_joints, scene.gt.joints))
     if scene.gt is not None:
         result.update(_chamfer_summary(out_dir, scene, matching, samples, seed, skipped))
@@ -62,6 +60,16 @@ def evaluate(out_dir: str | Path, scene_dir: str | Path, samples: int = 10000, s
     result.update(_psnr_summary(out_dir, scene, BACKGROUNDS[background], skipped))
     result["timings"] = _read_timings(out_dir, skipped)
     return result
+
+
+def match_joints(out_dir: Path, scene: Scene, pred_joints: list[Any]) -> Matching:
+    """The predicted joints of the run in `out_dir` matched to `scene`'s ground truth (which it
+    must have): by joint errors (metrics.match_parts), and among ground-truth joints that are
+    one motion by where the parts' meshes are (metrics.untie_same_motions)."""
+    assert scene.gt is not None
+    matching = match_parts(pred_joints, scene.gt.joints)
+    return untie_same_motions(matching, pred_joints, scene.gt.joints,
+                              *_part_centres(Path(out_dir), scene))
 
 
 def _part_centres(out_dir: Path, scene: Scene) -> tuple[dict[int, np.ndarray],

@@ -73,14 +73,15 @@ def _describe(joint: dict) -> str:
 def print_result(result, scene_dir: Path, out_dir: Path) -> None:  # noqa: ANN001 (TrainResult)
     """Recovered joints, next to the scene's ground truth and its errors when it has one."""
     from gear.data import load_scene
-    from gear.metrics import match_parts
+    from gear.evaluate import match_joints
 
     print(f"canonical state: {result.canonical}; outputs in {out_dir}")
     if not result.joints:
         print("no movable part found: the object is one static part")
     for joint in result.joints:
         print(f"  part {joint['part']}: {_describe(joint)}")
-    gt = load_scene(scene_dir, splits=("train",)).gt
+    scene = load_scene(scene_dir, splits=("train",))
+    gt = scene.gt
     if gt is not None and gt.joints:
         print("ground truth (shown only for comparison; never used in training):")
         gt_dicts = [
@@ -91,7 +92,7 @@ def print_result(result, scene_dir: Path, out_dir: Path) -> None:  # noqa: ANN00
         ]
         for i, joint in enumerate(gt_dicts):
             print(f"  joint {i}: {_describe(joint)}")
-        matching = match_parts(result.joints, gt.joints)
+        matching = match_joints(out_dir, scene, result.joints)
         for (g, p), err in zip(matching.pairs, matching.errors, strict=True):
             mismatch = "" if err["type_match"] else "  (TYPE MISMATCH)"
             print(f"  gt {g} <-> part {p + 1}: axis ang {err['axis_ang']:.2f} deg, "
