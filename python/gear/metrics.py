@@ -191,14 +191,19 @@ def match_parts(pred_joints: Sequence[Any], gt_joints: Sequence[Any]) -> Matchin
     penalty = cost.sum() + 1.0
     rows, cols = linear_sum_assignment(cost + penalty * mismatch)
     pairs = sorted(zip(rows.tolist(), cols.tolist(), strict=True))
-    errors = [table[g][p] for g, p in pairs]
+    return _matching(pairs, [table[g][p] for g, p in pairs],
+                     unmatched_gt=sorted(set(range(n_gt)) - set(rows.tolist())),
+                     unmatched_pred=sorted(set(range(n_pred)) - set(cols.tolist())))
+
+
+def _matching(pairs: list[tuple[int, int]], errors: list[dict[str, float]],
+              unmatched_gt: list[int], unmatched_pred: list[int]) -> Matching:
+    """A Matching of `pairs` with their `errors`, its type mismatches read off the errors."""
     return Matching(
-        pairs=pairs,
-        errors=errors,
+        pairs=pairs, errors=errors,
         type_mismatches=[(g, p) for (g, p), e in zip(pairs, errors, strict=True)
                          if not e["type_match"]],
-        unmatched_gt=sorted(set(range(n_gt)) - set(rows.tolist())),
-        unmatched_pred=sorted(set(range(n_pred)) - set(cols.tolist())),
+        unmatched_gt=unmatched_gt, unmatched_pred=unmatched_pred,
     )
 
 
@@ -249,13 +254,8 @@ def untie_same_motions(matching: Matching, pred_joints: Sequence[Any], gt_joints
     pairs = sorted(pred_for.items())
     pred = [Joint.from_any(p, f"joints[{i}]") for i, p in enumerate(pred_joints)]
     gt = [Joint.from_any(g, f"gt joint {i}") for i, g in enumerate(gt_joints)]
-    errors = [joint_errors(pred[p], gt[g]) for g, p in pairs]
-    return Matching(
-        pairs=pairs, errors=errors,
-        type_mismatches=[(g, p) for (g, p), e in zip(pairs, errors, strict=True)
-                         if not e["type_match"]],
-        unmatched_gt=matching.unmatched_gt, unmatched_pred=matching.unmatched_pred,
-    )
+    return _matching(pairs, [joint_errors(pred[p], gt[g]) for g, p in pairs],
+                     matching.unmatched_gt, matching.unmatched_pred)
 
 
 def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int) -> np.ndarray:
