@@ -337,6 +337,58 @@ def test_a_piece_joins_a_part_that_explains_more_of_its_change():
     own.explained = shared.explained + 0.1
     assert not _moves_along(split, cells, lever, shared, [own])
 
+def inner_face_scene(n=24000, seed=0):
+    """A cabinet whose door (a slab 0.06 thick, hinged on its left edge, axis z) is closed in
+    the target state and open 50 degrees in the canonical one. The door's inner face is seen
+    only while the door is open: the target state holds the door's front and edges, not it.
+    Returns the canonical and target centres, the inner face's canonical centres, the closing
+    turn and the target images' test (on the surface within the tolerance; seen through in
+    front of the closed cabinet; out of sight, hidden by the door, inside it)."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.array([0.0, -0.08, 0.0]), np.array([0.6, -0.02, 0.7])
+    body = box_surface([0, 0, 0], [0.6, 0.5, 0.7], n // 2, rng, skip=(FRONT,))
+    slab = box_surface(lo, hi, n // 2, rng)
+    inner = np.isclose(slab[:, 1], hi[1])
+    opening = hinge_motion([0, 0, 1], [0.0, -0.05, 0.0], -50.0)
+    canon = np.concatenate([body, slab @ opening[0].T + opening[1]])
+    target = np.concatenate([body, slab[~inner]])
+    closing = hinge_motion([0, 0, 1], [0.0, -0.05, 0.0], 50.0)
+    tree = cKDTree(target)
+
+    def look(points, tolerance):
+        on = tree.query(points)[0] < tolerance
+        inside = np.all((points >= [0.0, lo[1], 0.0]) & (points <= [0.6, 0.5, 0.7]), axis=1)
+        return on, ~on & ~inside
+
+    return canon, target, canon[len(body):][inner], closing, OneView(look)
+
+
+def test_a_face_the_target_hides_joins_the_door_whose_turn_hides_it():
+    """The open door's inner face is a piece of its own (nothing of it in the target state):
+    the door's closing turn puts it behind the closed door's front, where the voxel landing
+    finds no matter but the target images see nothing contradict it (its rim on the door's
+    edges, none of it seen through). It joins the door when its own motion is seen no better;
+    not when its own motion shows it on the target's surfaces far more, and not under a turn
+    that leaves it in front of the closed cabinet (seen through)."""
+    canon, target, face, closing, surfaces = inner_face_scene()
+    split = split_static_dynamic(canon, target, 0.02)
+    split.on_surface, split.surface_tolerance = surfaces, 0.04
+    cells = np.unique(split.grid.voxel_of(face), axis=0)
+    door = split.score(cells, "hinge", *closing)
+    assert door.trusted
+    # Its own fit: pushed into the cabinet, landing more cells (on its walls) than the turn.
+    pushed = split.score(cells, "slide", closing[0], closing[1] + [0.0, 0.3, 0.0])
+    pushed.landed = door.landed + 0.2
+    assert _moves_along(split, cells, face, door, [pushed])
+    # Its own motion lays it on the closed door's front: seen there, it stays apart.
+    on_front = split.score(cells, "slide", closing[0], closing[1] - [0.0, 0.06, 0.0])
+    on_front.landed = door.landed + 0.2
+    assert not _moves_along(split, cells, face, door, [on_front])
+    # A turn 30 degrees short leaves it in front of the cabinet: seen through.
+    short = split.score(cells, "hinge", *hinge_motion([0, 0, 1], [0.0, -0.05, 0.0], 20.0))
+    assert not _moves_along(split, cells, face, short, [pushed])
+
+
 def test_a_blob_that_is_neither_plane_nor_rod_turns_on_a_hinge():
     # A stapler-like head: a chunky box on a base (extents within a factor 1.5 of each other,
     # no plane, no long direction), raised 80 degrees about its back edge. Without planes or

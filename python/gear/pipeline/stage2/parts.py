@@ -53,6 +53,17 @@ SPLIT_FRACTION = 0.2
 # slide lies within the part's (_in_line).
 IN_LINE_SHARE = 0.5
 IN_LINE_MARGIN = 3.0
+# With the target images, a piece also moves with a part when, under the part's motion, the
+# images see it at least this share as much on their surfaces as under its own motion, and see
+# through at most SEEN_THROUGH_AT_MOST of its centres (_seen_alike). A door's inner face, a
+# component of its own once the door is open, lands under the door's turn where the closed
+# door hides it (no target matter to land on, nothing seen through: sink_base's 32.7 degree
+# door, on its surface 0.22 against 0.36 under a slide that lands it elsewhere); a door moved
+# by its neighbour's turn or a drawer's slide is seen at most 0.2 as much (the real fast
+# models), or seen through.
+SEEN_ALIKE_SHARE = 0.5
+SEEN_THROUGH_AT_MOST = 0.05
+MIN_SEEN_ON_SURFACE = 0.1
 
 
 @dataclass
@@ -132,11 +143,34 @@ def _moves_along(
         return False  # cut off by the test that it needs a motion of its own
     if shared.landed >= own.landed - 0.05:
         return True
+    if _seen_alike(split, points, motion, own):
+        return True
     if shared.landed >= own.landed - TIE_MARGIN and shared.explained >= own.explained:
         return True  # own lands a little more, but on matter that did not change
     apart = np.linalg.norm(points @ (np.asarray(motion.rot) - np.asarray(own.rot)).T
                            + (np.asarray(motion.trans) - np.asarray(own.trans)), axis=1)
     return bool(np.median(apart) <= AGREE_VOXELS * split.grid.voxel_size)
+
+
+def _seen_alike(split: VoxelSplit, points: np.ndarray, motion: Hypothesis,
+                own: Hypothesis) -> bool:
+    """Whether the target images (split.on_surface) see the centres `points` moved by `motion`
+    about as well as moved by their piece's `own` motion: on the target's surface at least
+    MIN_SEEN_ON_SURFACE of them and SEEN_ALIKE_SHARE as many as under `own`, seen through at
+    most SEEN_THROUGH_AT_MOST. The voxel landing cannot tell where the target state hides the
+    piece (a closed door's inner face, behind its front) from empty space; the images can."""
+    if split.on_surface is None:
+        return False
+
+    def seen(m: Hypothesis) -> tuple[float, float]:
+        moved = points @ np.asarray(m.rot).T + np.asarray(m.trans)
+        on, through = split.on_surface(moved, split.surface_tolerance)
+        return float(on.mean()), float(through.mean())
+
+    on, through = seen(motion)
+    if on < MIN_SEEN_ON_SURFACE or through > SEEN_THROUGH_AT_MOST:
+        return False
+    return on >= SEEN_ALIKE_SHARE * seen(own)[0]
 
 
 def _joins(split: VoxelSplit, pieces: np.ndarray, part: _Part, cells: np.ndarray,
