@@ -1,14 +1,19 @@
 """Stage 2's hand-off of doors that may be stacked on one hinge line
 (pipeline.stage2.stacked): a hinged part tall along its axis enters stage 3 cut in two across
-the axis at its median, with the same motion; short or thin parts, and parts hardly turned,
-are left whole."""
+the axis at its median, with the same motion; short or thin parts, parts hardly turned and
+one slab (its halves' faces parallel in both states) are left whole."""
 
 import numpy as np
 import pytest
 
 from gear.metrics import rotation_matrix
 from gear.pipeline.stage2.parts import seed_logits
-from gear.pipeline.stage2.stacked import MIN_TURN_DEG, split_stacked, stacked_cut
+from gear.pipeline.stage2.stacked import (
+    MIN_HALVES_TILT_DEG,
+    MIN_TURN_DEG,
+    split_stacked,
+    stacked_cut,
+)
 
 # Stage 2's voxel for these slabs (a part is one body at it: 2000 centres over 0.5 x 1.7).
 VOXEL = 0.05
@@ -23,6 +28,14 @@ def slab(width: float, height: float, n: int = 2000, seed: int = 0) -> np.ndarra
 def turn(deg: float, axis=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     """(R, t) of a turn by `deg` about a line along `axis` through the origin (the hinge)."""
     return rotation_matrix(np.asarray(axis), deg), np.zeros(3)
+
+
+def stacked_pair(lower_deg: float, upper_deg: float, n: int = 2000) -> np.ndarray:
+    """Centres of two doors 0.5 wide and 0.85 tall stacked on one hinge line (z through the
+    origin), the lower turned by `lower_deg` and the upper by `upper_deg`."""
+    lower = slab(0.5, 0.85, n // 2) @ turn(lower_deg)[0].T
+    upper = (slab(0.5, 0.85, n // 2, seed=1) + np.array([0.0, 0.0, 0.85])) @ turn(upper_deg)[0].T
+    return np.concatenate([lower, upper])
 
 
 def test_a_tall_turned_slab_is_cut_at_its_median_across_the_axis():
@@ -60,7 +73,7 @@ def test_too_few_gaussians_stay_whole():
 
 
 def test_split_stacked_seeds_the_new_part_and_keeps_the_rest():
-    door = slab(0.5, 1.7)
+    door = stacked_pair(0.0, 2 * MIN_HALVES_TILT_DEG)
     drawer = slab(0.4, 0.2, seed=1) + np.array([1.0, 0.0, 0.0])
     body = slab(2.0, 2.0, n=500, seed=2) + np.array([0.0, 0.5, 0.0])
     means = np.concatenate([door, drawer, body])
@@ -88,3 +101,36 @@ def test_split_stacked_without_candidates_changes_nothing():
     logits = seed_logits(np.zeros(10, dtype=np.int64), 1)
     out, candidates, halves, notes = split_stacked(logits, [], np.zeros((10, 3)), VOXEL)
     assert np.array_equal(out, logits) and candidates == [] and halves == [] and notes == []
+
+
+def door_and_body(door: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
+    """Centres of `door` (part 1, hinged) over a body (part 0), their logits and candidates."""
+    body = slab(2.0, 2.0, n=500, seed=2) + np.array([0.0, 0.5, 0.0])
+    means = np.concatenate([door, body])
+    logits = seed_logits(np.repeat([1, 0], [len(door), len(body)]), 2)
+    return means, logits, [[turn(35.0)]]
+
+
+def test_one_slab_is_not_cut():
+    """One door, tall along its hinge: its halves' faces are parallel in both states (the
+    target's: the door turned back), so it stays one part, and a note says why."""
+    door = slab(0.5, 1.7)
+    means, logits, candidates = door_and_body(door)
+    target = door @ turn(35.0)[0].T
+    out, out_candidates, halves, notes = split_stacked(logits, candidates, means, VOXEL, target)
+    assert halves == [] and out_candidates == candidates and np.array_equal(out, logits)
+    assert len(notes) == 1 and "one slab" in notes[0] and "not cut" in notes[0]
+
+
+@pytest.mark.parametrize("canonical, target", [
+    ((30.0, 36.0), None),  # open in the canonical state: its faces show the pair
+    ((0.0, 0.0), (30.0, 36.0)),  # closed there, open in the target state
+])
+def test_doors_stacked_at_different_angles_are_cut(canonical, target):
+    """Two doors on one hinge line turned 6 degrees apart: their faces lie 6 degrees from
+    parallel in the state where they are open, canonical or target, and the part is cut."""
+    means, logits, candidates = door_and_body(stacked_pair(*canonical))
+    target_points = None if target is None else stacked_pair(*target, n=1600)
+    out, _, halves, notes = split_stacked(logits, candidates, means, VOXEL, target_points)
+    assert halves == [(1, 2)] and out.shape == (len(means), 3)
+    assert "tall along its hinge: one half" in notes[0]

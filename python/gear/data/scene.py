@@ -18,6 +18,11 @@ SPLITS = ("train", "test")
 BACKGROUND_PART = 255  # part-id value of pixels that show no object
 
 
+def other_state(state: str) -> str:
+    """The state that is not `state` (one of STATES)."""
+    return STATES[1 - STATES.index(state)]
+
+
 class SceneError(ValueError):
     """A malformed scene; `.problems` lists every "file: what is wrong" found."""
 

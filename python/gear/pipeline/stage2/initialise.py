@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from gear.articulation import RigidMotion
 from gear.config import TrainConfig
-from gear.data.scene import STATES
+from gear.data.scene import STATES, other_state
 from gear.pipeline.common import TrainView
 from gear.pipeline.runner import Runner
 from gear.pipeline.stage2.parts import coarse_init
@@ -43,7 +43,7 @@ class Stage2Result:
 
     @property
     def target(self) -> str:
-        return "end" if self.canonical == "start" else "start"
+        return other_state(self.canonical)
 
     @property
     def motions(self) -> list[RigidMotion]:
@@ -105,8 +105,9 @@ def initialise_parts(models: dict[str, Gaussians], views: dict[str, list[TrainVi
                            np.asarray(init.logits, dtype=np.float32))
     candidates, notes, halves = init.candidates, list(init.notes), []
     if c.split_stacked_hinges and c.num_parts is None and c.merge_redundant_parts:
-        logits, candidates, halves, cuts = split_stacked(logits, candidates, centres[canonical],
-                                                         init.voxel_size)
+        logits, candidates, halves, cuts = split_stacked(
+            logits, candidates, centres[canonical], init.voxel_size,
+            centres[other_state(canonical)])
         notes += cuts
     result = Stage2Result(
         canonical=canonical,

@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from gear import geometry
 from gear.articulation import RigidMotion
+from gear.data.scene import other_state
 from gear.pipeline.stage2.hypotheses import DETECT_OVERLAP, IDENTITY, Hypothesis, fit_plane
 from gear.pipeline.stage2.regions import AGREE_VOXELS, MERGE_COST, extra_residual, motion_regions
 from gear.pipeline.stage2.seen_through import claim_seen_through
@@ -571,8 +572,7 @@ def coarse_init(
     canonical, note = choose_canonical(start, end)
     canon, target = (start, end) if canonical == "start" else (end, start)
     notes = [note]
-    target_surface = None if surfaces is None else surfaces[
-        "end" if canonical == "start" else "start"]
+    target_surface = None if surfaces is None else surfaces[other_state(canonical)]
     on_surface = target_surface if num_parts is None else None
     radius = dilation_radius
     if voxel_size is not None:

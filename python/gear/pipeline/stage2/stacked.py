@@ -11,11 +11,12 @@ stage 3's images then fit each half's motion, and its merge of parts read twice
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from gear import geometry
 from gear.articulation import RigidMotion
 from gear.metrics import rotation_angle_deg
-from gear.pipeline.stage2.hypotheses import axis_of
+from gear.pipeline.stage2.hypotheses import axis_of, dominant_plane
 
 # A part is cut in two when its extent along its hinge axis is at least this many times its
 # extent across (along its widest direction perpendicular to the axis): doors stacked on one
@@ -27,6 +28,16 @@ EXTENT_PERCENTILES = (2.0, 98.0)
 MIN_TURN_DEG = 5.0
 # Each half needs at least this many Gaussians.
 MIN_HALF_GAUSSIANS = 50
+# Two doors stacked on one hinge line and turned by different angles show it in their faces:
+# the halves' dominant planes (within a voxel) lie as far from parallel as the doors' angles
+# differ, in whichever state the doors are open. A part whose halves' faces lie within this
+# of parallel in both states is one slab and is not cut. Fast models: a real cupboard's two
+# stacked pairs (4.3 and 9.4 degrees apart) 4.5 and 10.4; one fridge door turned 176 degrees
+# 0.8 (cut, its halves ended stage 3 a degree apart and stayed two parts).
+MIN_HALVES_TILT_DEG = 2.0
+# Target centres within this many voxels of a half moved by the part's motion are its face
+# in the target state.
+NEAR_VOXELS = 2.0
 
 
 def _extent(values: np.ndarray) -> float:
@@ -58,9 +69,39 @@ def stacked_cut(means: np.ndarray, motion: RigidMotion, voxel_size: float) -> np
     return beyond
 
 
+def _faces_tilt(first: np.ndarray, second: np.ndarray, voxel_size: float) -> float | None:
+    """The angle in degrees between the dominant planes (within `voxel_size`) of two point
+    sets, or None when either has none."""
+    planes = [dominant_plane(points, voxel_size) if len(points) >= 3 else None
+              for points in (first, second)]
+    if planes[0] is None or planes[1] is None:
+        return None
+    cosine = abs(float(planes[0].axes[-1] @ planes[1].axes[-1]))
+    return float(np.degrees(np.arccos(min(1.0, cosine))))
+
+
+def halves_tilt(means: np.ndarray, beyond: np.ndarray, motion: RigidMotion,
+                target: np.ndarray, voxel_size: float) -> float | None:
+    """How far from parallel the faces of a part's two halves lie (degrees), the larger over
+    the canonical state (the halves' centres `means[beyond]`, `means[~beyond]`) and the
+    target state (the `target` centres within NEAR_VOXELS of each half moved by `motion`);
+    None when a half has no dominant plane in either state."""
+    tilts = [_faces_tilt(means[beyond], means[~beyond], voxel_size)]
+    if len(target):
+        rot, trans = (np.asarray(m, dtype=np.float64) for m in motion)
+        tree = cKDTree(target)
+        near = []
+        for half in (beyond, ~beyond):
+            distance, index = tree.query(means[half] @ rot.T + trans)
+            near.append(target[np.unique(index[distance <= NEAR_VOXELS * voxel_size])])
+        tilts.append(_faces_tilt(near[0], near[1], voxel_size))
+    known = [t for t in tilts if t is not None]
+    return max(known) if known else None
+
+
 def split_stacked(
     logits: np.ndarray, candidates: list[list[RigidMotion]], means: np.ndarray,
-    voxel_size: float,
+    voxel_size: float, target: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[list[RigidMotion]], list[tuple[int, int]], list[str]]:
     """Part logits [N, K] and per-movable-part motion candidates with every candidate for two
     stacked doors (stacked_cut of the canonical centres `means` [N, 3] whose largest logit is
@@ -68,7 +109,9 @@ def split_stacked(
     last, with the same candidates. Everyone's logit of the new part is a copy of the cut
     part's, but for the halves: the moved half keeps the cut part's (seeded) logit for the new
     part and takes its lowest logit for the cut part, the other half its lowest for the new
-    part. Returns them, the pairs of halves (cut part, new part) and a note per cut."""
+    part. A candidate whose halves' faces lie within MIN_HALVES_TILT_DEG of parallel in both
+    states (halves_tilt; the `target` state's centres, when given) is one slab, left whole.
+    Returns them, the pairs of halves (cut part, new part) and a note per candidate."""
     owner = logits.argmax(axis=1)
     out = logits.copy()
     out_candidates = list(candidates)
@@ -77,6 +120,12 @@ def split_stacked(
         members = np.flatnonzero(owner == part)
         beyond = stacked_cut(means[members], motions[0], voxel_size)
         if beyond is None:
+            continue
+        tilt = halves_tilt(means[members], beyond, motions[0],
+                           np.empty((0, 3)) if target is None else target, voxel_size)
+        if tilt is not None and tilt < MIN_HALVES_TILT_DEG:
+            notes.append(f"part {part}: tall along its hinge, but one slab (its halves' faces "
+                         f"{tilt:.1f} degrees from parallel): not cut")
             continue
         moved, stays = members[beyond], members[~beyond]
         column = logits[:, part].copy()
