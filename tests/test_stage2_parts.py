@@ -337,6 +337,7 @@ def test_a_piece_joins_a_part_that_explains_more_of_its_change():
     own.explained = shared.explained + 0.1
     assert not _moves_along(split, cells, lever, shared, [own])
 
+
 def inner_face_scene(n=24000, seed=0):
     """A cabinet whose door (a slab 0.06 thick, hinged on its left edge, axis z) is closed in
     the target state and open 50 degrees in the canonical one. The door's inner face is seen

@@ -81,13 +81,13 @@ def _faces_tilt(first: np.ndarray, second: np.ndarray, voxel_size: float) -> flo
 
 
 def halves_tilt(means: np.ndarray, beyond: np.ndarray, motion: RigidMotion,
-                target: np.ndarray, voxel_size: float) -> float | None:
+                target: np.ndarray | None, voxel_size: float) -> float | None:
     """How far from parallel the faces of a part's two halves lie (degrees), the larger over
     the canonical state (the halves' centres `means[beyond]`, `means[~beyond]`) and the
-    target state (the `target` centres within NEAR_VOXELS of each half moved by `motion`);
-    None when a half has no dominant plane in either state."""
+    target state (the `target` centres within NEAR_VOXELS of each half moved by `motion`, when
+    given); None when a half has no dominant plane in either state."""
     tilts = [_faces_tilt(means[beyond], means[~beyond], voxel_size)]
-    if len(target):
+    if target is not None and len(target):
         rot, trans = (np.asarray(m, dtype=np.float64) for m in motion)
         tree = cKDTree(target)
         near = []
@@ -121,8 +121,7 @@ def split_stacked(
         beyond = stacked_cut(means[members], motions[0], voxel_size)
         if beyond is None:
             continue
-        tilt = halves_tilt(means[members], beyond, motions[0],
-                           np.empty((0, 3)) if target is None else target, voxel_size)
+        tilt = halves_tilt(means[members], beyond, motions[0], target, voxel_size)
         if tilt is not None and tilt < MIN_HALVES_TILT_DEG:
             notes.append(f"part {part}: tall along its hinge, but one slab (its halves' faces "
                          f"{tilt:.1f} degrees from parallel): not cut")
