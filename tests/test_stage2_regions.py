@@ -99,3 +99,19 @@ def test_refine_rigid_recovers_a_small_offset_of_the_true_motion():
     truth = points @ rot.T + trans
     assert np.abs(moved - truth).max() < 5e-3
     assert np.linalg.det(got_rot) == pytest.approx(1.0)
+
+
+def test_refine_rigid_stops_at_a_fixed_point_with_the_bits_of_more_steps():
+    # Once a step pairs the same points with the same centres as the step before, every
+    # further step repeats it: stopping there must give what any longer run gives, bit for bit.
+    rng = np.random.default_rng(4)
+    points = box_surface([0, 0, 0], [1.0, 0.6, 0.3], 2000, rng)
+    rot, trans = hinge_motion(np.array([0.0, 0.0, 1.0]), np.array([0.2, 0.1, 0.0]), 25.0)
+    tree = cKDTree(points @ rot.T + trans + rng.normal(0.0, 0.004, (len(points), 3)))
+    start_rot, start_trans = hinge_motion(np.array([0.0, 0.0, 1.0]),
+                                          np.array([0.2, 0.1, 0.0]), 22.0)
+    short = refine_rigid(points, start_rot, start_trans, tree, 25)
+    long = refine_rigid(points, start_rot, start_trans, tree, 200)
+    again = refine_rigid(points, *short, tree, 1)
+    for got in (long, again):
+        assert np.array_equal(got[0], short[0]) and np.array_equal(got[1], short[1])

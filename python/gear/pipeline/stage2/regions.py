@@ -83,12 +83,19 @@ def refine_rigid(
 ) -> RigidMotion:
     """(R, t) after `steps` of trimmed ICP of `points` onto the centres of `tree`: each step
     pairs the nearest 80 % of the moved points with their nearest centres and solves the
-    rigid fit of those pairs (the part of a piece the target hides must not drag the rest)."""
+    rigid fit of those pairs (the part of a piece the target hides must not drag the rest).
+    Stops early at a fixed point: a step that pairs the same points with the same centres as
+    the step before solves the same fit, so every later step would repeat it bit for bit."""
     rot, trans = np.asarray(rot, dtype=np.float64), np.asarray(trans, dtype=np.float64)
+    pairs = None
     for _ in range(steps):
         moved = points @ rot.T + trans
         dist, index = tree.query(moved, k=1)
         near = dist <= np.percentile(dist, 80)
+        paired = np.where(near, index, -1)
+        if pairs is not None and np.array_equal(paired, pairs):
+            break
+        pairs = paired
         src, dst = points[near], tree.data[index[near]]
         src_c, dst_c = src.mean(axis=0), dst.mean(axis=0)
         u, _, vt = np.linalg.svd((src - src_c).T @ (dst - dst_c))

@@ -13,7 +13,7 @@
 mod bins;
 mod blend;
 mod blend_backward;
-mod lanes;
+pub(crate) mod lanes;
 mod layer;
 mod lists;
 mod pool;
