@@ -9,9 +9,9 @@
 //! Gaussians, K = 8, 3 neighbours): the sums have one fixed order, so the result is the same on
 //! every run. The loss is summed in f64.
 
+use crate::counts::{channels, with_channels};
 use crate::error::{check_finite, invalid, Result};
 use crate::motion::Real;
-use crate::splat::cpu::lanes::{channels, with_channels};
 
 /// The term's value and its gradient with respect to the logits ([N, K], row-major).
 #[derive(Debug, Clone, PartialEq)]

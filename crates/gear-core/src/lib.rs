@@ -14,6 +14,7 @@
 //! Nothing here knows about Python or torch; arrays come in and go out as slices.
 
 pub mod consistency;
+mod counts;
 pub mod error;
 pub mod gpu;
 pub mod knn;

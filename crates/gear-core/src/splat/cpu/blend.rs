@@ -9,10 +9,9 @@
 use rayon::prelude::*;
 
 use super::bins::Bins;
-use super::lanes::{
-    array, channels, evaluate, mask, masked, select, with_avx2, with_channels, Lanes, Mask, LANES,
-};
+use super::lanes::{array, evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
 use super::TILE;
+use crate::counts::{channels, with_channels};
 use crate::splat::constants::MIN_TRANSMITTANCE;
 
 /// What the backward replays: per pixel the final transmittance and the end of the consumed

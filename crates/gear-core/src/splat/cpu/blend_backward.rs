@@ -11,12 +11,11 @@
 use rayon::prelude::*;
 
 use super::blend::{PixelState, Row, Scene};
-use super::lanes::{
-    array, channels, evaluate, mask, masked, select, with_avx2, with_channels, Lanes, Mask, LANES,
-};
+use super::lanes::{array, evaluate, mask, masked, select, with_avx2, Lanes, Mask, LANES};
 use super::lists::Entry;
 use super::spares::Spares;
 use super::TILE;
+use crate::counts::{channels, with_channels};
 use crate::splat::constants::MAX_ALPHA;
 use crate::splat::types::OutputGradients;
 

@@ -33,44 +33,6 @@ macro_rules! with_avx2 {
 }
 pub(super) use with_avx2;
 
-/// Calls `$f::<C>(args)` with the feature channel count `$channels` as a compile-time constant
-/// C for the common counts, else `$f::<0>(args)` (the count read at run time, see
-/// [`channels`]): with a constant count the per-channel loops unroll into straight-line code.
-macro_rules! with_channels {
-    // `f(args)`, or `f::<T>(args)` for a function with generic parameters before the count.
-    ($channels:expr, $f:ident $(::<$($g:ty),+>)? ($($arg:expr),* $(,)?)) => {
-        match $channels {
-            1 => $f::<$($($g,)+)? 1>($($arg),*),
-            2 => $f::<$($($g,)+)? 2>($($arg),*),
-            3 => $f::<$($($g,)+)? 3>($($arg),*),
-            4 => $f::<$($($g,)+)? 4>($($arg),*),
-            5 => $f::<$($($g,)+)? 5>($($arg),*),
-            6 => $f::<$($($g,)+)? 6>($($arg),*),
-            7 => $f::<$($($g,)+)? 7>($($arg),*),
-            8 => $f::<$($($g,)+)? 8>($($arg),*),
-            9 => $f::<$($($g,)+)? 9>($($arg),*),
-            10 => $f::<$($($g,)+)? 10>($($arg),*),
-            11 => $f::<$($($g,)+)? 11>($($arg),*),
-            12 => $f::<$($($g,)+)? 12>($($arg),*),
-            13 => $f::<$($($g,)+)? 13>($($arg),*),
-            _ => $f::<$($($g,)+)? 0>($($arg),*),
-        }
-    };
-}
-pub(crate) use with_channels;
-
-/// The channel count of a function specialised by [`with_channels!`]: `C`, or `runtime` for
-/// the generic instance C = 0.
-#[inline(always)]
-pub(crate) fn channels<const C: usize>(runtime: usize) -> usize {
-    debug_assert!(C == 0 || C == runtime);
-    if C == 0 {
-        runtime
-    } else {
-        C
-    }
-}
-
 pub(super) const LANES: usize = 8;
 pub(super) type Lanes = [f32; LANES];
 /// Per-lane conditions as all-ones-or-zero u32s, applied with bitwise operations: bool arrays

@@ -13,7 +13,7 @@
 mod bins;
 mod blend;
 mod blend_backward;
-pub(crate) mod lanes;
+mod lanes;
 mod layer;
 mod lists;
 mod pool;
@@ -30,9 +30,10 @@ use rayon::ThreadPool;
 use self::bins::{bin, Bins};
 use self::blend::{blend, Base, PixelState, Scene};
 use self::blend_backward::{blend_backward, Replay, GEOMETRY, RECORDS};
-use self::lanes::{array, channels, with_avx2, with_channels, LANES as BLOCK};
+use self::lanes::{array, with_avx2, LANES as BLOCK};
 use self::project::{project_backward, View};
 use self::wide::F8;
+use crate::counts::{channels, with_channels};
 use crate::error::{GearError, Result};
 use crate::splat::types::{
     check_held, Camera, GaussianGradients, Gaussians, OutputGradients, RenderOptions, RenderOutput,
