@@ -11,14 +11,13 @@ import torch
 from gear.articulation import PartMotion
 from gear.config import make_config
 from gear.kinematics import dq_from_rt, quat_from_axis_angle, quat_from_matrix, quat_to_matrix
+from gear.pipeline.stage2.frame import body_frame, upright_frame
 from gear.pipeline.stage3 import Refine
 from gear.pipeline.stage3.square_axes import (
     MIN_SQUARE_DEG,
     SQUARE_TOLERANCE_DEG,
-    body_frame,
     squared_axis,
     squared_motion,
-    upright_frame,
 )
 from stage3_scenes import OFFSET, grid_gaussians, rot_z, views_of
 

@@ -14,6 +14,8 @@ from scipy.spatial import cKDTree
 from gear import geometry
 from gear.articulation import RigidMotion
 from gear.data.scene import other_state
+from gear.pipeline.stage2.frame import body_frame
+from gear.pipeline.stage2.frame_slides import FrameSlide, frame_slides
 from gear.pipeline.stage2.hypotheses import DETECT_OVERLAP, IDENTITY, Hypothesis, fit_plane
 from gear.pipeline.stage2.regions import AGREE_VOXELS, MERGE_COST, extra_residual, motion_regions
 from gear.pipeline.stage2.seen_through import claim_seen_through
@@ -416,6 +418,9 @@ def find_parts(
     regions_of: set[int] = set()  # pieces that are already one motion's region
     # Target cells the parts so far land on (_first_on_free_matter).
     claimed = np.zeros(split.grid.shape, dtype=bool)
+    # The body's frame (frame.body_frame of the centres in no dynamic piece), read when a piece
+    # first needs it: [frame or None].
+    frame: list[np.ndarray | None] | None = None
     while queue:
         size, comp = heapq.heappop(queue)
         mask = pieces == comp
@@ -490,11 +495,45 @@ def find_parts(
             if wanted is None or len(parts) < wanted:
                 parts.append(_Part([comp], hyps))
                 claimed |= split.landing_cells(cells, hyps[0])
-        else:
+            continue
+        if wanted is not None:
             spare.append(_Part([comp], [IDENTITY]))
+            continue
+        if frame is None:
+            frame = [body_frame(canon[canon_labels == 0])]
+        drawers = [] if frame[0] is None else _drawers(
+            split, mask, frame[0], lambda m: canon[points_in(m)], len(canon), extent)
+        for drawer in drawers:
+            pieces[drawer.cells] = next_label
+            parts.append(_Part([next_label], [drawer.motion]))
+            claimed |= split.landing_cells(np.argwhere(drawer.cells), drawer.motion)
+            next_label += 1
+        if drawers:
+            canon_labels = split.grid.point_labels(canon, pieces)
+            travels = ", ".join(f"{np.linalg.norm(d.motion.trans):.3g}" for d in drawers)
+            notes.append(f"component {comp}: {len(drawers)} drawer(s) pushed along the body's "
+                         f"frame by {travels}")
     if wanted is not None:
         parts += spare[: max(0, wanted - len(parts))]
     return parts, canon_labels, notes
+
+
+def _drawers(split: VoxelSplit, mask: np.ndarray, frame: np.ndarray,
+             points_of: Callable[[np.ndarray], np.ndarray], total: int,
+             extent: float) -> list[FrameSlide]:
+    """The drawers of a piece (`mask`) that claims no part as a whole, pushed along the body's
+    `frame` each by its own travel (frame_slides.frame_slides; `points_of(mask)` gives the
+    canonical centres in a grid mask), those big enough for a part (_large_enough, of `total`
+    centres, the object `extent` across) that the target images see move (seen_change)."""
+    kept = []
+    for drawer in frame_slides(split, mask, frame, points_of):
+        points = points_of(drawer.cells)
+        if len(points) < 4 or not _large_enough(points, total, extent):
+            continue
+        if seen_change(points, drawer.motion, split.on_surface,
+                       split.surface_tolerance) >= MIN_SEEN_CHANGE:
+            kept.append(drawer)
+    return kept
 
 
 def _claims_a_part(split: VoxelSplit, cells: np.ndarray, points: np.ndarray,
