@@ -44,10 +44,12 @@ MIN_CLEAR = 0.8
 
 @dataclass
 class FrameSlide:
-    """Cells of a piece (a grid mask) and the push that moves them."""
+    """Cells of a piece (a grid mask), the push that moves them and its direction (a unit
+    direction of the body's frame)."""
 
     cells: np.ndarray
     motion: Hypothesis
+    along: np.ndarray
 
 
 @dataclass
@@ -215,8 +217,8 @@ def frame_slides(split: VoxelSplit, mask: np.ndarray, frame: np.ndarray,
                                   [cells_of_group[g] for g in members])
         piece = _cells_mask(split, cells[drawer[columns.of_cell] == d])
         shift = -travel * split.grid.voxel_size * columns.along
-        slides.append(FrameSlide(piece, split.score(np.argwhere(piece), "slide", np.eye(3),
-                                                    shift)))
+        motion = split.score(np.argwhere(piece), "slide", np.eye(3), shift)
+        slides.append(FrameSlide(piece, motion, columns.along))
     return slides
 
 

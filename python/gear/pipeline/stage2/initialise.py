@@ -40,6 +40,8 @@ class Stage2Result:
     voxel_size: float
     notes: list[str] = field(default_factory=list)
     halves: list[tuple[int, int]] = field(default_factory=list)
+    # Per movable part: the direction stage 3 holds its slide to, or None (CoarseInit).
+    held_slides: list[np.ndarray | None] = field(default_factory=list)
 
     @property
     def target(self) -> str:
@@ -118,6 +120,8 @@ def initialise_parts(models: dict[str, Gaussians], views: dict[str, list[TrainVi
         voxel_size=init.voxel_size,
         notes=notes,
         halves=halves,
+        # split_stacked appends the halves' parts: hinges, held to nothing.
+        held_slides=init.held_slides + [None] * (int(logits.shape[1]) - 1 - len(init.held_slides)),
     )
     runner.timings["stage2"] = time.perf_counter() - t0
     for state in STATES:

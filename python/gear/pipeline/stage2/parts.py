@@ -85,6 +85,9 @@ class CoarseInit:
     # Per movable part: its motion first, then any near-tie of the other kind (hinge vs slide)
     # for stage3.joint_types.classify_joints to decide by the images.
     candidates: list[list[RigidMotion]] = field(default_factory=list)
+    # Per movable part: the direction its slide is held to in stage 3 (a drawer pushed along
+    # the body's frame, frame_slides), else None.
+    held_slides: list[np.ndarray | None] = field(default_factory=list)
 
 
 def _check_points(points: np.ndarray, name: str) -> np.ndarray:
@@ -210,6 +213,8 @@ def _in_line(cells: np.ndarray, part_cells: np.ndarray, motion: Hypothesis) -> b
 class _Part:
     components: list[int]
     hypotheses: list[Hypothesis]  # the motion first, then a near-tie of the other kind
+    # The direction of a slide held to the body's frame (frame_slides), else None.
+    held: np.ndarray | None = None
 
     @property
     def motion(self) -> Hypothesis:
@@ -505,7 +510,7 @@ def find_parts(
             split, mask, frame[0], lambda m: canon[points_in(m)], len(canon), extent)
         for drawer in drawers:
             pieces[drawer.cells] = next_label
-            parts.append(_Part([next_label], [drawer.motion]))
+            parts.append(_Part([next_label], [drawer.motion], held=drawer.along))
             claimed |= split.landing_cells(np.argwhere(drawer.cells), drawer.motion)
             next_label += 1
         if drawers:
@@ -659,8 +664,10 @@ def coarse_init(
             f"part {index}: components {part.components} "
             f"({int((part_of_point == index).sum())} Gaussians), init {scores}"
         )
+    held_slides = [part.held for part in parts]
     for index in range(len(parts) + 1, k):
         candidates.append([(np.eye(3), np.zeros(3))])
+        held_slides.append(None)
         notes.append(f"part {index}: no dynamic component left; identity init, no seeded logits")
     motions = [c[0] for c in candidates]
     if target_surface is not None:
@@ -670,4 +677,4 @@ def coarse_init(
             notes.append(f"{claimed} static Gaussians the target images see through joined "
                          "the part whose motion puts them on its surface")
     logits = seed_logits(part_of_point, k)
-    return CoarseInit(canonical, k, logits, motions, size, notes, candidates)
+    return CoarseInit(canonical, k, logits, motions, size, notes, candidates, held_slides)

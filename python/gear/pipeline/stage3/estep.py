@@ -74,7 +74,7 @@ def gaussian_step(state: RefineState, it: int, phase: str) -> dict[str, float]:
     state.densifier.accumulate(means_d, view.camera, it + 1, c.stage3_densify_until)
     g.optimizer.step()
     if phase == "J":
-        state.motion_optimizer.step()
+        state.step_motion()
     return {k: v.item() for k, v in {**terms, **anchor_terms}.items()}
 
 

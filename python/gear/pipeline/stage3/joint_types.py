@@ -51,7 +51,8 @@ def classify(state: RefineState) -> None:
         init_motions=state.init_motions if resolve and state.init_motions else None,
         small_hinge_margin=c.small_hinge_margin,
         hinge_reach=(center, HINGE_REACH * object_radius(state.gaussians, center)),
-        parts=state.live_parts(),
+        # A held slide is a slide: the body's frame gave its line (RefineState.hold_slides).
+        parts=[k for k in state.live_parts() if k not in state.held_slides],
     )
     qr, _ = state.motion.motion()
     angles = [round(math.degrees(float(a)), 3) for a in quat_angle(qr.detach())[1:]]

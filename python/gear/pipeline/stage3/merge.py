@@ -200,3 +200,4 @@ def _apply(state: RefineState, merge: Merge) -> None:
     logits[:, k] = logits.min(dim=1).values - FORGET_LOGIT
     qr, qd = state.motion.motion()
     state.motion.set_part(k, qr[j], qd[j], prismatic=bool(state.motion.prismatic[j]))
+    state.held_slides.pop(k, None)  # it moves as `into` now

@@ -15,5 +15,5 @@ def motion_step(state: RefineState, it: int) -> dict[str, float]:
     state.motion_optimizer.zero_grad(set_to_none=True)
     terms = state.held_image_step(state.motion, *zip(*drawn, strict=True))
     check_finite(terms, state.name, it)
-    state.motion_optimizer.step()
+    state.step_motion()
     return {k: v.item() for k, v in terms.items()}

@@ -153,7 +153,7 @@ def _refine(g: Gaussians, frozen: Gaussians | None, coarse: Stage2Result,
     return Refine(g, PartMotion.from_rt(coarse.motions), frozen, views[coarse.canonical],
                   views[coarse.target], config, config.seed * 1000 + 7,
                   init_motions=coarse.candidates, canonical=coarse.canonical,
-                  halves=coarse.halves)
+                  halves=coarse.halves, held_slides=coarse.held_slides)
 
 
 def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,

@@ -7,12 +7,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 
 from gear.articulation import PartMotion
 from gear.config import TrainConfig
 from gear.geometry import nearest_neighbours
-from gear.kinematics import dq_to_rt, quat_mul, quat_rotate
+from gear.kinematics import dq_from_rt, dq_to_rt, quat_identity, quat_mul, quat_rotate
 from gear.pipeline.common import Stage, TrainView, gaussian_lrs, image_terms, map_beside
 from gear.splats import Densifier, Gaussians, StaticLayers, gaussian_budget, render
 from gear.splats.init import scene_extent
@@ -102,7 +103,9 @@ class RefineState(Stage):
     """Stage 3's state: canonical Gaussians + part logits + per-part motion, the frozen
     stage-1 model of the canonical state (None unless the anchor is "frozen"), and the views
     of both states. `halves`: pairs of parts that stage 2 cut from one part tall along its hinge
-    (stage2.stacked), kept apart until the end of stage 3."""
+    (stage2.stacked), kept apart until the end of stage 3. `held_slides`: per movable part, the
+    unit direction its slide is held to (stage 2 pushed it along the body's frame), or None:
+    such a part slides along it from the start and trains its travel alone (hold_slides)."""
 
     name = "stage3"
 
@@ -118,12 +121,15 @@ class RefineState(Stage):
         init_motions: Sequence = (),  # stage-2 candidates per movable part (joint_types)
         canonical: str = "start",
         halves: Sequence[tuple[int, int]] = (),
+        held_slides: Sequence[np.ndarray | None] = (),
     ) -> None:
         super().__init__(config, seed)
         self.gaussians, self.motion, self.frozen = gaussians, motion, frozen
         self.init_motions = list(init_motions)
         self.canonical = canonical
         self.halves = [tuple(pair) for pair in halves]
+        self.held_slides = {k: np.asarray(along, dtype=np.float64) / np.linalg.norm(along)
+                            for k, along in enumerate(held_slides, start=1) if along is not None}
         self.canonical_views = list(canonical_views)
         self.region_views = [v for v in self.canonical_views if v.regions is not None]
         self.target_views = list(target_views)
@@ -133,6 +139,7 @@ class RefineState(Stage):
         self.densifier = Densifier(
             gaussians, gaussian_budget(config, [v.camera for v in self.canonical_views]))
         self.motion_optimizer = motion_optimizer(motion, config, self.extent)
+        self.hold_slides()
         self.total = config.stage3_iterations
         self._neighbours: torch.Tensor | None = None
         self._neighbours_generation = -1  # Gaussians.generation the lists were built for
@@ -235,6 +242,30 @@ class RefineState(Stage):
                      held=held.counts[0], layers=held.layers)
         terms = image_terms(out, view, bg, self.config)
         return {name: value / count for name, value in terms.items()}
+
+    def step_motion(self) -> None:
+        """One step of the motion optimizer, the held slides kept on their lines."""
+        self.motion_optimizer.step()
+        self.hold_slides()
+
+    def hold_slides(self) -> None:
+        """Each held slide's translation projected onto its direction, its rotation the
+        identity: what Adam adds across the line is taken back after every step. A drawer
+        pushed into its cabinet is hidden and looks like its neighbours, so the images pull
+        on it little, and Adam's steps, normalised per coordinate, turn a small steady pull
+        sideways into full-sized ones (a real kitchen island's trays drifted 0.2-0.3 along
+        the island in 100 M-steps). Projecting the gradient instead would not do: Adam would
+        still step each coordinate at full size."""
+        if not self.held_slides:
+            return
+        with torch.no_grad():
+            qr, qd = self.motion.motion()
+            _, trans = dq_to_rt(qr, qd)
+            identity = quat_identity((), qr.dtype, qr.device)
+            for k, along in self.held_slides.items():
+                direction = torch.as_tensor(along, dtype=trans.dtype, device=trans.device)
+                kept = (trans[k] @ direction) * direction
+                self.motion.set_part(k, identity, dq_from_rt(identity, kept)[1], prismatic=True)
 
     def live_parts(self) -> list[int]:
         """The movable parts some Gaussian belongs to (argmax of its logits)."""
