@@ -237,6 +237,19 @@ def test_a_drawer_pulled_along_a_tilted_line_is_squared_to_the_box():
     assert abs(joint["distance"] - SLIDE) < 0.01
 
 
+def test_a_held_slide_is_not_squared_again():
+    """A slide held to a line (stage 2 pushed it along the body's frame) keeps that line: the
+    same drawer, free, is squared (above)."""
+    out, right = np.array([0.0, -1.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    stage, _ = door_stage(true_axis=out, trained_axis=tilted(out, 3.0, right), slide=True)
+    (before,) = stage.motion.joints(torch.zeros(3))
+    stage.held_slides = {1: np.asarray(before["axis"])}
+    stage.square_axes()
+    assert stage.events[0]["parts"] == []
+    (after,) = stage.motion.joints(torch.zeros(3))
+    np.testing.assert_allclose(after["axis"], before["axis"])
+
+
 def test_a_door_that_truly_turns_off_square_keeps_its_axis():
     up, right = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
     skew = tilted(up, SQUARE_TOLERANCE_DEG - 0.5, right)
