@@ -423,9 +423,10 @@ def find_parts(
     regions_of: set[int] = set()  # pieces that are already one motion's region
     # Target cells the parts so far land on (_first_on_free_matter).
     claimed = np.zeros(split.grid.shape, dtype=bool)
-    # The body's frame (frame.body_frame of the centres in no dynamic piece), read when a piece
-    # first needs it: [frame or None].
-    frame: list[np.ndarray | None] | None = None
+    # The body's frame (the faces of the centres in no dynamic piece), along which a piece that
+    # claims no part may still be drawers side by side (_drawers); only with K from the images.
+    frame = (body_frame(canon[canon_labels == 0])
+             if wanted is None and on_surface is not None else None)
     while queue:
         size, comp = heapq.heappop(queue)
         mask = pieces == comp
@@ -504,10 +505,8 @@ def find_parts(
         if wanted is not None:
             spare.append(_Part([comp], [IDENTITY]))
             continue
-        if frame is None:
-            frame = [body_frame(canon[canon_labels == 0])]
-        drawers = [] if frame[0] is None else _drawers(
-            split, mask, frame[0], lambda m: canon[points_in(m)], len(canon), extent)
+        drawers = [] if frame is None else _drawers(
+            split, mask, frame, lambda m: canon[points_in(m)], len(canon), extent)
         for drawer in drawers:
             pieces[drawer.cells] = next_label
             parts.append(_Part([next_label], [drawer.motion], held=drawer.along))
