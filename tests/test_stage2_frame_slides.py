@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from gear.pipeline.stage2 import frame_slides, parts
-from gear.pipeline.stage2.parts import coarse_init
+from gear.pipeline.stage2.parts import SURFACE_TOLERANCE_VOXELS, coarse_init
 from stage2_surfaces import OneView
 from test_coarse import box_surface
 
@@ -103,6 +103,12 @@ def test_each_tray_is_pushed_back_by_its_own_travel():
         assert abs(trans[1] - pull) <= 1.5 * VOXEL, (index, trans)
         # Along the body's frame, which its faces give to a small fraction of a degree.
         assert np.degrees(np.arccos(trans[1] / np.linalg.norm(trans))) < 0.2
+        # Held no deeper than the push plus the images' tolerance, past the true pull.
+        deepest = result.held_slides[part - 1]
+        np.testing.assert_allclose(np.cross(deepest, trans), 0.0, atol=1e-12)
+        assert pull <= deepest @ trans / np.linalg.norm(trans)
+        assert np.linalg.norm(deepest) == pytest.approx(
+            np.linalg.norm(trans) + SURFACE_TOLERANCE_VOXELS * VOXEL)
 
 
 def test_a_piece_meeting_no_target_matter_along_the_frame_gives_no_drawer():

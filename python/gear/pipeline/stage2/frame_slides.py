@@ -44,12 +44,15 @@ MIN_CLEAR = 0.8
 
 @dataclass
 class FrameSlide:
-    """Cells of a piece (a grid mask), the push that moves them and its direction (a unit
-    direction of the body's frame)."""
+    """Cells of a piece (a grid mask), the push that moves them (along a direction of the body's
+    frame) and the deepest push the drawer may take: the same direction, as long as the push
+    plus the images' tolerance. The images read a push up to that tolerance short of where the
+    front lands, and see nothing of a drawer pushed deeper (it disappears into the cabinet):
+    only the bound keeps stage 3 from sliding it on."""
 
     cells: np.ndarray
     motion: Hypothesis
-    along: np.ndarray
+    deepest: np.ndarray
 
 
 @dataclass
@@ -218,7 +221,8 @@ def frame_slides(split: VoxelSplit, mask: np.ndarray, frame: np.ndarray,
         piece = _cells_mask(split, cells[drawer[columns.of_cell] == d])
         shift = -travel * split.grid.voxel_size * columns.along
         motion = split.score(np.argwhere(piece), "slide", np.eye(3), shift)
-        slides.append(FrameSlide(piece, motion, columns.along))
+        reach = travel * split.grid.voxel_size + split.surface_tolerance
+        slides.append(FrameSlide(piece, motion, -reach * columns.along))
     return slides
 
 

@@ -40,7 +40,7 @@ class Stage2Result:
     voxel_size: float
     notes: list[str] = field(default_factory=list)
     halves: list[tuple[int, int]] = field(default_factory=list)
-    # Per movable part: the direction stage 3 holds its slide to, or None (CoarseInit).
+    # Per movable part: the deepest shift stage 3 holds its slide to, or None (CoarseInit).
     held_slides: list[np.ndarray | None] = field(default_factory=list)
 
     @property

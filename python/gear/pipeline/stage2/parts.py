@@ -85,8 +85,8 @@ class CoarseInit:
     # Per movable part: its motion first, then any near-tie of the other kind (hinge vs slide)
     # for stage3.joint_types.classify_joints to decide by the images.
     candidates: list[list[RigidMotion]] = field(default_factory=list)
-    # Per movable part: the direction its slide is held to in stage 3 (a drawer pushed along
-    # the body's frame, frame_slides), else None.
+    # Per movable part: the deepest shift its slide is held to in stage 3 (direction and
+    # reach of a drawer pushed along the body's frame, frame_slides), else None.
     held_slides: list[np.ndarray | None] = field(default_factory=list)
 
 
@@ -213,7 +213,7 @@ def _in_line(cells: np.ndarray, part_cells: np.ndarray, motion: Hypothesis) -> b
 class _Part:
     components: list[int]
     hypotheses: list[Hypothesis]  # the motion first, then a near-tie of the other kind
-    # The direction of a slide held to the body's frame (frame_slides), else None.
+    # The deepest shift of a slide held to the body's frame (frame_slides), else None.
     held: np.ndarray | None = None
 
     @property
@@ -509,7 +509,7 @@ def find_parts(
             split, mask, frame, lambda m: canon[points_in(m)], len(canon), extent)
         for drawer in drawers:
             pieces[drawer.cells] = next_label
-            parts.append(_Part([next_label], [drawer.motion], held=drawer.along))
+            parts.append(_Part([next_label], [drawer.motion], held=drawer.deepest))
             claimed |= split.landing_cells(np.argwhere(drawer.cells), drawer.motion)
             next_label += 1
         if drawers:

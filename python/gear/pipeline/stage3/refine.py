@@ -110,6 +110,8 @@ class Refine(RefineState):
             # The KNN lists in use (they are kept while the centres move between edits), so a
             # resumed run smooths the logits over the same neighbours.
             "neighbours": self._neighbours if current else None,
+            # Held slides left after the merges (a merged part moves as the one it joined).
+            "held_slides": self.held_slides,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -117,6 +119,8 @@ class Refine(RefineState):
         self.densifier.load_state_dict(state["densifier"])
         self.motion.load_state_dict(state["motion"])
         self.motion_optimizer.load_state_dict(state["motion_optimizer"])
+        # A checkpoint written before held slides were saved holds stage 2's.
+        self.held_slides = state.get("held_slides", self.held_slides)
         if state["neighbours"] is not None:
             self._neighbours = state["neighbours"]
             self._neighbours_generation = self.gaussians.generation

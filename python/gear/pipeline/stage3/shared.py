@@ -104,8 +104,9 @@ class RefineState(Stage):
     stage-1 model of the canonical state (None unless the anchor is "frozen"), and the views
     of both states. `halves`: pairs of parts that stage 2 cut from one part tall along its hinge
     (stage2.stacked), kept apart until the end of stage 3. `held_slides`: per movable part, the
-    unit direction its slide is held to (stage 2 pushed it along the body's frame), or None:
-    such a part slides along it from the start and trains its travel alone (hold_slides)."""
+    deepest shift its slide is held to (stage 2 pushed it along the body's frame), or None:
+    such a part slides along that line from the start, no deeper, and trains its travel alone
+    (hold_slides)."""
 
     name = "stage3"
 
@@ -128,8 +129,9 @@ class RefineState(Stage):
         self.init_motions = list(init_motions)
         self.canonical = canonical
         self.halves = [tuple(pair) for pair in halves]
-        self.held_slides = {k: np.asarray(along, dtype=np.float64) / np.linalg.norm(along)
-                            for k, along in enumerate(held_slides, start=1) if along is not None}
+        self.held_slides = {k: np.asarray(deepest, dtype=np.float64)
+                            for k, deepest in enumerate(held_slides, start=1)
+                            if deepest is not None}
         self.canonical_views = list(canonical_views)
         self.region_views = [v for v in self.canonical_views if v.regions is not None]
         self.target_views = list(target_views)
@@ -249,22 +251,25 @@ class RefineState(Stage):
         self.hold_slides()
 
     def hold_slides(self) -> None:
-        """Each held slide's translation projected onto its direction, its rotation the
-        identity: what Adam adds across the line is taken back after every step. A drawer
-        pushed into its cabinet is hidden and looks like its neighbours, so the images pull
-        on it little, and Adam's steps, normalised per coordinate, turn a small steady pull
-        sideways into full-sized ones (a real kitchen island's trays drifted 0.2-0.3 along
-        the island in 100 M-steps). Projecting the gradient instead would not do: Adam would
-        still step each coordinate at full size."""
+        """Each held slide's translation projected onto its line and kept between no shift and
+        its deepest, its rotation the identity: what Adam adds across the line or beyond the
+        reach is taken back after every step. A drawer pushed into its cabinet is hidden and
+        looks like its neighbours, so the images pull on it little, and Adam's steps,
+        normalised per coordinate, turn a small steady pull into full-sized ones: a real
+        kitchen island's trays drifted 0.2-0.3 along the island in 100 M-steps, and, held to
+        their lines, one went on into its cabinet to 2.4 times its travel. Projecting the
+        gradient instead would not do: Adam would still step each coordinate at full size."""
         if not self.held_slides:
             return
         with torch.no_grad():
             qr, qd = self.motion.motion()
             _, trans = dq_to_rt(qr, qd)
             identity = quat_identity((), qr.dtype, qr.device)
-            for k, along in self.held_slides.items():
-                direction = torch.as_tensor(along, dtype=trans.dtype, device=trans.device)
-                kept = (trans[k] @ direction) * direction
+            for k, deepest in self.held_slides.items():
+                reach = float(np.linalg.norm(deepest))
+                direction = torch.as_tensor(deepest / reach, dtype=trans.dtype,
+                                            device=trans.device)
+                kept = torch.clamp(trans[k] @ direction, 0.0, reach) * direction
                 self.motion.set_part(k, identity, dq_from_rt(identity, kept)[1], prismatic=True)
 
     def live_parts(self) -> list[int]:
