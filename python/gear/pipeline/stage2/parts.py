@@ -395,131 +395,181 @@ def find_parts(
     split = split_static_dynamic(canon, target, voxel_size, dilation_radius)
     split.on_surface = on_surface
     split.surface_tolerance = SURFACE_TOLERANCE_VOXELS * voxel_size
-    pieces = split.labels[0].copy()
-    canon_labels = split.grid.point_labels(canon, pieces)
-    sizes = split.sizes[0]
-    notes = [
-        f"voxel size {voxel_size:.4g}: {len(sizes)} canonical and {len(split.sizes[1])} target "
-        f"dynamic components (largest {sizes[:6].tolist()})"
-    ]
-    extent = Scale.extent_of(canon)
-    point_cells = split.grid.voxel_of(canon)
-    in_grid = np.all((point_cells >= 0) & (point_cells < np.array(split.grid.shape)), axis=1)
-
-    def points_in(mask: np.ndarray) -> np.ndarray:
-        """Which canonical centres lie in the cells of `mask`."""
-        inside = np.zeros(len(canon), dtype=bool)
-        inside[in_grid] = mask[tuple(point_cells[in_grid].T)]
-        return inside
-
     wanted = None if num_parts is None else num_parts - 1
-    visit = max(MAX_TARGET_CANDIDATES, 2 * (wanted or 0))
-    # Max-heap of (voxels, piece label); split pieces get fresh labels.
-    queue = [(-int(size), comp) for comp, size in enumerate(sizes[:visit], start=1)]
-    heapq.heapify(queue)
-    next_label = len(sizes) + 1
-    parts: list[_Part] = []
-    spare: list[_Part] = []
-    regions_of: set[int] = set()  # pieces that are already one motion's region
-    # Target cells the parts so far land on (_first_on_free_matter).
-    claimed = np.zeros(split.grid.shape, dtype=bool)
-    # The body's frame (the faces of the centres in no dynamic piece), along which a piece that
-    # claims no part may still be drawers side by side (_drawers); only with K from the images.
-    frame = (body_frame(canon[canon_labels == 0])
-             if wanted is None and on_surface is not None else None)
-    while queue:
-        size, comp = heapq.heappop(queue)
-        mask = pieces == comp
-        points = canon[canon_labels == comp]
-        if -size < MIN_PART_VOXELS or len(points) < 4:
-            continue
-        if wanted is None and not _large_enough(points, len(canon), extent):
-            continue
-        hyps = init_motion(split, mask, points)
-        cells = np.argwhere(mask)
-        # Any reading of a part counts: a safe door's dial, a component of its own, moves
-        # with the door only under the half turn that may not be the door's first reading.
-        owner = next((p for p in parts if _joins(split, pieces, p, cells, points, hyps,
-                                                  comp in regions_of)), None)
-        if owner is not None:
-            owner.components.append(comp)
-            claimed |= split.landing_cells(cells, owner.motion)
-            continue
+    search = _PartSearch(split, canon, wanted)
+    search.run()
+    parts = search.parts
+    if wanted is not None:
+        parts += search.spare[: max(0, wanted - len(parts))]
+    return parts, search.canon_labels, search.notes
+
+
+class _PartSearch:
+    """find_parts' visit of the pieces, largest first: the pieces' grid labels (cut pieces get
+    fresh ones), each canonical centre's piece label, the parts found so far, the target cells
+    they land on (_first_on_free_matter), and the notes."""
+
+    def __init__(self, split: VoxelSplit, canon: np.ndarray, wanted: int | None) -> None:
+        self.split, self.canon, self.wanted = split, canon, wanted
+        self.pieces = split.labels[0].copy()
+        self.canon_labels = split.grid.point_labels(canon, self.pieces)
+        sizes = split.sizes[0]
+        self.notes = [
+            f"voxel size {split.grid.voxel_size:.4g}: {len(sizes)} canonical and "
+            f"{len(split.sizes[1])} target dynamic components (largest {sizes[:6].tolist()})"
+        ]
+        self.extent = Scale.extent_of(canon)
+        self._point_cells = split.grid.voxel_of(canon)
+        self._in_grid = np.all(
+            (self._point_cells >= 0) & (self._point_cells < np.array(split.grid.shape)), axis=1)
+        visit = max(MAX_TARGET_CANDIDATES, 2 * (wanted or 0))
+        # Max-heap of (voxels, piece label).
+        self.queue = [(-int(size), comp) for comp, size in enumerate(sizes[:visit], start=1)]
+        heapq.heapify(self.queue)
+        self.next_label = len(sizes) + 1
+        self.parts: list[_Part] = []
+        self.spare: list[_Part] = []
+        self.regions_of: set[int] = set()  # pieces that are already one motion's region
+        self.claimed = np.zeros(split.grid.shape, dtype=bool)
+        # The body's frame (the faces of the centres in no dynamic piece), along which a piece
+        # that claims no part may still be drawers side by side (_drawers); only with K from
+        # the images.
+        self.frame = (body_frame(canon[self.canon_labels == 0])
+                      if wanted is None and split.on_surface is not None else None)
+
+    def centres_in(self, mask: np.ndarray) -> np.ndarray:
+        """The canonical centres in the cells of `mask`."""
+        inside = np.zeros(len(self.canon), dtype=bool)
+        inside[self._in_grid] = mask[tuple(self._point_cells[self._in_grid].T)]
+        return self.canon[inside]
+
+    def run(self) -> None:
+        while self.queue:
+            size, comp = heapq.heappop(self.queue)
+            self._visit(comp, -size)
+
+    def _visit(self, comp: int, voxels: int) -> None:
+        """One piece: joined to a part, cut, made a part (or drawers), or left static."""
+        mask = self.pieces == comp
+        points = self.canon[self.canon_labels == comp]
+        if voxels < MIN_PART_VOXELS or len(points) < 4:
+            return
+        if self.wanted is None and not _large_enough(points, len(self.canon), self.extent):
+            return
+        hyps = init_motion(self.split, mask, points)
+        if self._joined(comp, mask, points, hyps):
+            return
         # Cutting a component multiplies the candidates for parts: with K unknown, only the
         # target images can reject the pieces that merely land somewhere (safe180's interior,
         # uncovered by its door, lands on the closed door once shifted), so without them
         # components stay whole.
-        if hyps[0].trusted and (on_surface is not None or wanted is not None):
-            # A piece is cut off only when it is a part of its own: big enough, with a motion
-            # that lands it and claims change. The far end of a small lever, missed by its
-            # slightly wrong first turn, is neither.
-            total = len(canon) if wanted is None else None
-            missed, apart = _pieces_apart(split, mask, hyps, lambda m: canon[points_in(m)],
-                                          total, extent, comp not in regions_of)
-            rest = missed + apart
-            remainder = mask.copy()
-            for piece in rest:
-                remainder &= ~piece.cells
-            points = canon[points_in(remainder)]
-            taken = None
-            if rest and len(points) >= 4:
-                hyps = init_motion(split, remainder, points)
-                taken = _remainder_taken(split, remainder, rest, hyps[0])
-            cut = [piece.cells for piece in rest] if taken is None else taken
-            for index, piece_cells in enumerate(cut):
-                mask &= ~piece_cells
-                pieces[piece_cells] = next_label
-                if index >= len(missed):
-                    regions_of.add(next_label)  # one motion's region: not cut again
-                heapq.heappush(queue, (-int(piece_cells.sum()), next_label))
-                next_label += 1
-            if rest:
-                canon_labels = split.grid.point_labels(canon, pieces)
-                notes.append(f"component {comp}: {len(rest)} piece(s) its motion does not "
-                             "explain split off")
-                if taken is not None:
-                    notes.append(f"component {comp}: what remains of it joins those pieces, "
-                                 f"whose motions land more of it than its own "
-                                 f"({hyps[0].landed:.2f})")
-                    continue
-                if len(points) < 4:
-                    continue
-        cells = np.argwhere(mask)  # what is left of the piece once cut
-        hyps, free = _first_on_free_matter(split, claimed, cells, hyps)
+        if hyps[0].trusted and (self.split.on_surface is not None or self.wanted is not None):
+            cut = self._cut(comp, mask, hyps)
+            if cut is None:
+                return
+            points, hyps = cut
+        self._place(comp, mask, points, hyps)
+
+    def _joined(self, comp: int, mask: np.ndarray, points: np.ndarray,
+                hyps: list[Hypothesis]) -> bool:
+        """Whether the piece joins a part found before it (_joins). Any reading of a part
+        counts: a safe door's dial, a component of its own, moves with the door only under
+        the half turn that may not be the door's first reading."""
+        cells = np.argwhere(mask)
+        owner = next((p for p in self.parts if _joins(
+            self.split, self.pieces, p, cells, points, hyps, comp in self.regions_of)), None)
+        if owner is None:
+            return False
+        owner.components.append(comp)
+        self.claimed |= self.split.landing_cells(cells, owner.motion)
+        return True
+
+    def _cut(self, comp: int, mask: np.ndarray,
+             hyps: list[Hypothesis]) -> tuple[np.ndarray, list[Hypothesis]] | None:
+        """Cuts off the piece `mask` (in place) the pieces that are parts of their own
+        (_pieces_apart), queued to be visited in turn, or hands it all to them
+        (_remainder_taken). Returns the centres and readings of what is left of it to place,
+        or None when nothing is. A piece is cut off only when it is a part of its own: big
+        enough, with a motion that lands it and claims change. The far end of a small lever,
+        missed by its slightly wrong first turn, is neither."""
+        total = len(self.canon) if self.wanted is None else None
+        missed, apart = _pieces_apart(self.split, mask, hyps, self.centres_in, total,
+                                      self.extent, comp not in self.regions_of)
+        rest = missed + apart
+        remainder = mask.copy()
+        for piece in rest:
+            remainder &= ~piece.cells
+        points = self.centres_in(remainder)
+        taken = None
+        if rest and len(points) >= 4:
+            hyps = init_motion(self.split, remainder, points)
+            taken = _remainder_taken(self.split, remainder, rest, hyps[0])
+        cut = [piece.cells for piece in rest] if taken is None else taken
+        for index, piece_cells in enumerate(cut):
+            mask &= ~piece_cells
+            label = self._new_piece(piece_cells)
+            if index >= len(missed):
+                self.regions_of.add(label)  # one motion's region: not cut again
+            heapq.heappush(self.queue, (-int(piece_cells.sum()), label))
+        if not rest:
+            return points, hyps
+        self.canon_labels = self.split.grid.point_labels(self.canon, self.pieces)
+        self.notes.append(f"component {comp}: {len(rest)} piece(s) its motion does not "
+                          "explain split off")
+        if taken is not None:
+            self.notes.append(f"component {comp}: what remains of it joins those pieces, whose "
+                              f"motions land more of it than its own ({hyps[0].landed:.2f})")
+            return None
+        return (points, hyps) if len(points) >= 4 else None
+
+    def _new_piece(self, cells: np.ndarray) -> int:
+        """Labels the grid mask `cells` as a new piece; returns its label."""
+        label = self.next_label
+        self.pieces[cells] = label
+        self.next_label += 1
+        return label
+
+    def _place(self, comp: int, mask: np.ndarray, points: np.ndarray,
+               hyps: list[Hypothesis]) -> None:
+        """The piece `mask` (holding `points`, read as `hyps`) as a part when it claims one,
+        else (K given) a spare, else drawers side by side when it holds any."""
+        cells = np.argwhere(mask)
+        hyps, free = _first_on_free_matter(self.split, self.claimed, cells, hyps)
         if free is not None:
-            notes.append(f"component {comp}: its {hyps[1].kind} lands only {free:.2f} on "
-                         f"matter no earlier part lands on: {hyps[0].kind} first")
-        detected, seen = _claims_a_part(split, cells, points, hyps[0], images=wanted is None)
+            self.notes.append(f"component {comp}: its {hyps[1].kind} lands only {free:.2f} "
+                              f"on matter no earlier part lands on: {hyps[0].kind} first")
+        detected, seen = _claims_a_part(self.split, cells, points, hyps[0],
+                                        images=self.wanted is None)
         if seen is not None:
-            notes.append(f"component {comp} not a part: the target images see only "
-                         f"{seen:.2f} of it move")
-        elif not detected and wanted is None and hyps[0].trusted:
-            notes.append(f"component {comp} not a part: its {hyps[0].kind} explains "
-                         f"{hyps[0].explained:.2f} of the change it maps onto, under "
-                         f"{DETECT_OVERLAP}")
-        if hyps[0].trusted and (detected or wanted is not None):
-            if wanted is None or len(parts) < wanted:
-                parts.append(_Part([comp], hyps))
-                claimed |= split.landing_cells(cells, hyps[0])
-            continue
-        if wanted is not None:
-            spare.append(_Part([comp], [IDENTITY]))
-            continue
-        drawers = [] if frame is None else _drawers(
-            split, mask, frame, lambda m: canon[points_in(m)], len(canon), extent)
+            self.notes.append(f"component {comp} not a part: the target images see only "
+                              f"{seen:.2f} of it move")
+        elif not detected and self.wanted is None and hyps[0].trusted:
+            self.notes.append(f"component {comp} not a part: its {hyps[0].kind} explains "
+                              f"{hyps[0].explained:.2f} of the change it maps onto, under "
+                              f"{DETECT_OVERLAP}")
+        if hyps[0].trusted and (detected or self.wanted is not None):
+            if self.wanted is None or len(self.parts) < self.wanted:
+                self.parts.append(_Part([comp], hyps))
+                self.claimed |= self.split.landing_cells(cells, hyps[0])
+        elif self.wanted is not None:
+            self.spare.append(_Part([comp], [IDENTITY]))
+        elif self.frame is not None:
+            self._add_drawers(comp, mask)
+
+    def _add_drawers(self, comp: int, mask: np.ndarray) -> None:
+        """The drawers side by side in a piece that claims no part as a whole (_drawers), each
+        a part of its own held to its slide."""
+        drawers = _drawers(self.split, mask, self.frame, self.centres_in, len(self.canon),
+                           self.extent)
         for drawer in drawers:
-            pieces[drawer.cells] = next_label
-            parts.append(_Part([next_label], [drawer.motion], held=drawer.deepest))
-            claimed |= split.landing_cells(np.argwhere(drawer.cells), drawer.motion)
-            next_label += 1
+            label = self._new_piece(drawer.cells)
+            self.parts.append(_Part([label], [drawer.motion], held=drawer.deepest))
+            self.claimed |= self.split.landing_cells(np.argwhere(drawer.cells), drawer.motion)
         if drawers:
-            canon_labels = split.grid.point_labels(canon, pieces)
+            self.canon_labels = self.split.grid.point_labels(self.canon, self.pieces)
             travels = ", ".join(f"{np.linalg.norm(d.motion.trans):.3g}" for d in drawers)
-            notes.append(f"component {comp}: {len(drawers)} drawer(s) pushed along the body's "
-                         f"frame by {travels}")
-    if wanted is not None:
-        parts += spare[: max(0, wanted - len(parts))]
-    return parts, canon_labels, notes
+            self.notes.append(f"component {comp}: {len(drawers)} drawer(s) pushed along the "
+                              f"body's frame by {travels}")
 
 
 def _drawers(split: VoxelSplit, mask: np.ndarray, frame: np.ndarray,
