@@ -105,6 +105,44 @@ def test_knn_bad_input_names_the_argument(points, k, queries, match):
         knn(points, k, queries)
 
 
+def test_nearest_tree_matches_ckdtree_over_many_calls():
+    """One tree, queried again and again with small and large sets (the calling thread's path
+    and the pool's): scipy's shapes and order, distances to float32 precision, every index at
+    its distance, and `data` the points in float64."""
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-1, 1, (3000, 3))
+    tree = geometry.NearestTree(points)
+    reference = cKDTree(points.astype(np.float32).astype(np.float64))
+    assert len(tree) == 3000 and tree.data.dtype == np.float64
+    np.testing.assert_array_equal(tree.data, points)
+    for count, k in [(1, 1), (200, 1), (2000, 1), (200, 4), (2000, 2)]:
+        queries = rng.uniform(-1.5, 1.5, (count, 3))
+        dist, idx = tree.query(queries, k=k)
+        ref_dist, _ = reference.query(queries, k=k)
+        shape = (count,) if k == 1 else (count, k)
+        assert dist.shape == idx.shape == shape
+        assert dist.dtype == np.float64 and idx.dtype == np.int64
+        np.testing.assert_allclose(dist, ref_dist, rtol=1e-5, atol=1e-6)
+        at = np.linalg.norm(tree.data[idx] - (queries if k == 1 else queries[:, None]), axis=-1)
+        np.testing.assert_allclose(dist, at, rtol=1e-5, atol=1e-6)
+
+
+def test_nearest_tree_refuses_bad_input():
+    with pytest.raises(ValueError, match="points: row 1 has a non-finite"):
+        geometry.NearestTree(np.array([[0, 0, 0], [0, np.nan, 0]]))
+    tree = geometry.NearestTree(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match=r"k: asks for 4 .* only 3"):
+        tree.query(np.zeros((1, 3)), k=4)
+    with pytest.raises(ValueError, match="k: must be at least 1"):
+        tree.query(np.zeros((1, 3)), k=0)
+    with pytest.raises(ValueError, match="queries: row 0 has a non-finite"):
+        tree.query(np.array([[np.inf, 0, 0]]))
+    with pytest.raises(ValueError, match=r"queries: expected shape \[N, 3\]"):
+        tree.query(np.zeros((2, 2)))
+    dist, idx = tree.query(np.zeros((0, 3)))
+    assert dist.shape == idx.shape == (0,)
+
+
 # ---------------------------------------------------------------------------------------------
 # Components
 

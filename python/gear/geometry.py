@@ -44,6 +44,35 @@ def knn(
     return _core.knn(pts, k, qs)
 
 
+class NearestTree:
+    """A k-d tree over reference points (``[N, 3]``), built once for many :meth:`query` calls:
+    the native tree of :func:`knn`, searched on the calling thread for a few hundred queries
+    and by every core for more.
+
+    ``data`` holds the points in float64 (callers read matched points from it); the search runs
+    in float32 like :func:`knn`, so a query between two points equidistant to within float32
+    precision may get either. Raises ValueError for non-finite points."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.data = np.asarray(points, dtype=np.float64)
+        self._tree = _core.KnnTree(_points(self.data, "points"))
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def query(self, queries: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """``(distances float64, indices int64)`` of the ``k`` nearest points to each query
+        ``[M, 3]``, nearest first: shape ``[M]`` for ``k = 1``, ``[M, k]`` above (the order and
+        shapes of scipy's ``cKDTree.query``). Raises ValueError for k < 1, more neighbours than
+        points, or a non-finite query."""
+        k = _count(k, "k", minimum=1)
+        indices, distances = self._tree.query(_points(queries, "queries"), k)
+        distances = distances.astype(np.float64)
+        if k == 1:
+            return distances[:, 0], indices[:, 0]
+        return distances, indices
+
+
 def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
     """Indices [N, k] of each point's k nearest other points, k clipped to N - 1 (a set too
     small for one neighbour gives [N, 0]): the neighbour lists of the Gaussians."""

@@ -1,7 +1,7 @@
 //! KNN against brute force: random, duplicate and collinear sets, self-exclusion, external
-//! queries, and the error cases.
+//! queries, a tree kept for many queries, and the error cases.
 
-use gear_core::knn::{knn, Neighbours, Queries};
+use gear_core::knn::{knn, NearestTree, Neighbours, Queries};
 use gear_core::GearError;
 
 fn random_points(rng: &mut fastrand::Rng, n: usize, scale: f32) -> Vec<[f32; 3]> {
@@ -93,6 +93,30 @@ fn external_queries_match_brute_force() {
 }
 
 #[test]
+fn a_kept_tree_answers_small_and_large_query_sets_like_brute_force() {
+    // Query sets of one task's size run on the calling thread, larger ones in the pool in
+    // Morton order: both must give every row its own neighbours, call after call.
+    let mut rng = fastrand::Rng::with_seed(5);
+    let points = random_points(&mut rng, 4000, 1.0);
+    let tree = NearestTree::new(&points).unwrap();
+    assert_eq!(tree.len(), points.len());
+    for (count, k) in [(1, 1), (300, 1), (512, 2), (513, 1), (5000, 3)] {
+        let queries: Vec<[f32; 3]> = random_points(&mut rng, count, 1.4)
+            .into_iter()
+            .map(|p| p.map(|c| c - 0.2))
+            .collect();
+        let found = tree.query(&queries, k).unwrap();
+        assert_eq!(found.len(), count);
+        for i in (0..count).step_by(7) {
+            check_row(&points, queries[i], None, &found, i);
+        }
+        let once = knn(&points, Queries::Points(&queries), k).unwrap();
+        assert_eq!(once.indices, found.indices);
+        assert_eq!(once.distances, found.distances);
+    }
+}
+
+#[test]
 fn deep_tree_in_parallel_matches_brute_force_on_a_sample() {
     let mut rng = fastrand::Rng::with_seed(3);
     let points = random_points(&mut rng, 30_000, 1.0);
@@ -151,7 +175,9 @@ fn message(err: GearError) -> String {
 #[test]
 fn bad_input_is_rejected_with_the_argument_named() {
     let points = vec![[0.0f32, 1.0, 2.0]; 4];
-    let err = |r: gear_core::Result<_>| message(r.err().expect("should fail"));
+    fn err<T>(r: gear_core::Result<T>) -> String {
+        message(r.err().expect("should fail"))
+    }
     assert!(err(knn(&points, Queries::SelfExcluded, 0)).starts_with("k:"));
     assert!(err(knn(&points, Queries::SelfExcluded, 4)).starts_with("k:"));
     assert!(knn(&points, Queries::SelfExcluded, 3).is_ok());
@@ -163,4 +189,10 @@ fn bad_input_is_rejected_with_the_argument_named() {
     let inf = [[0.0f32, f32::INFINITY, 0.0]];
     assert!(err(knn(&points, Queries::Points(&inf), 1)).starts_with("queries: row 0"));
     assert!(err(knn(&[], Queries::Points(&q), 1)).starts_with("k:"));
+    assert!(err(NearestTree::new(&bad)).starts_with("points: row 2"));
+    let tree = NearestTree::new(&points).unwrap();
+    assert!(err(tree.query(&q, 0)).starts_with("k:"));
+    assert!(err(tree.query(&q, 5)).starts_with("k:"));
+    assert!(err(tree.query(&inf, 1)).starts_with("queries: row 0"));
+    assert!(tree.query(&[], 2).unwrap().is_empty());
 }

@@ -33,6 +33,27 @@ fn grid_encloses_all_sets_from_their_min_corner() {
 }
 
 #[test]
+fn voxel_indices_floor_the_offset_from_the_origin_for_small_and_large_sets() {
+    // A few hundred points are indexed on the calling thread, tens of thousands in the pool:
+    // both give floor((p - origin) / size) in f64, inside the grid or not.
+    let mut rng = fastrand::Rng::with_seed(9);
+    let grid = GridSpec::new([-0.3, 0.1, 2.0], 0.07, [20, 30, 10]).unwrap();
+    for n in [1, 300, 40_000] {
+        let points: Vec<[f32; 3]> = (0..n)
+            .map(|_| [rng.f32() * 3.0 - 1.0, rng.f32() * 2.0, rng.f32() + 1.8])
+            .collect();
+        let found = voxel_indices(&grid, &points).unwrap();
+        assert_eq!(found.len(), n);
+        for (p, v) in points.iter().zip(&found) {
+            let want: [i64; 3] = std::array::from_fn(|a| {
+                ((f64::from(p[a]) - grid.origin[a]) / grid.voxel_size).floor() as i64
+            });
+            assert_eq!(*v, want);
+        }
+    }
+}
+
+#[test]
 fn dense_and_sparse_occupancy_agree_and_ignore_outside_points() {
     let mut rng = fastrand::Rng::with_seed(5);
     let points: Vec<[f32; 3]> = (0..2000)

@@ -1,11 +1,10 @@
-//! Bindings of voxel grids, components, TSDF integration and KNN (gear_core::voxel,
-//! gear_core::knn).
+//! Bindings of voxel grids, components and TSDF integration (gear_core::voxel).
 //!
-//! Arguments are checked here (dtype, shape, layout); values (finite points, voxel size, k,
+//! Arguments are checked here (dtype, shape, layout); values (finite points, voxel size,
 //! key order) are checked by gear-core, whose errors become `ValueError`s naming the argument.
 //! The work runs without the GIL on read-only views of the caller's arrays.
 
-use gear_core::knn::{as_points, Queries};
+use gear_core::knn::as_points;
 use gear_core::voxel::{self, check_keys, Connectivity, DepthView, GridSpec};
 use numpy::{IntoPyArray, PyArray1, PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
@@ -15,41 +14,12 @@ use crate::args::{array, Dim};
 use crate::errors::guarded;
 use crate::splat::camera;
 
-const POINTS: [Dim; 2] = [Dim::Any("N"), Dim::Fixed(3)];
+pub(crate) const POINTS: [Dim; 2] = [Dim::Any("N"), Dim::Fixed(3)];
 const KEYS: [Dim; 1] = [Dim::Any("M")];
 const GRID: [Dim; 3] = [Dim::Any("X"), Dim::Any("Y"), Dim::Any("Z")];
 
 type Array<'py, T> = Bound<'py, PyArrayDyn<T>>;
 type Vector<'py, T> = Bound<'py, PyArray1<T>>;
-
-/// `k` nearest neighbours: `(indices int64 [M, k], distances float32 [M, k])`, nearest first;
-/// without `queries`, each point's neighbours among the others.
-#[pyfunction]
-#[pyo3(signature = (points, k, queries=None))]
-fn knn<'py>(
-    py: Python<'py>,
-    points: &Bound<'py, PyAny>,
-    k: i64,
-    queries: Option<&Bound<'py, PyAny>>,
-) -> PyResult<(Array<'py, i64>, Array<'py, f32>)> {
-    let k = usize::try_from(k)
-        .map_err(|_| PyValueError::new_err(format!("k: must be at least 1, got {k}")))?;
-    let points = array::<f32>(points, "points", &POINTS)?;
-    let queries = queries
-        .map(|q| array::<f32>(q, "queries", &POINTS))
-        .transpose()?;
-    let refs = as_points(points.as_slice()?);
-    let qs = match &queries {
-        None => Queries::SelfExcluded,
-        Some(q) => Queries::Points(as_points(q.as_slice()?)),
-    };
-    let found = guarded(py, move || gear_core::knn::knn(refs, qs, k))?;
-    let rows = found.len();
-    Ok((
-        reshape(found.indices.into_pyarray(py), &[rows, k])?,
-        reshape(found.distances.into_pyarray(py), &[rows, k])?,
-    ))
-}
 
 /// `(origin, shape)` of the grid enclosing all `point_sets` at `voxel_size`.
 #[pyfunction]
@@ -258,7 +228,7 @@ fn on_keys<'py, R: Send>(
 }
 
 /// Gives a flat result array its real shape (a view; no copy).
-fn reshape<'py, T: numpy::Element>(
+pub(crate) fn reshape<'py, T: numpy::Element>(
     flat: Bound<'py, PyArray1<T>>,
     shape: &[usize],
 ) -> PyResult<Array<'py, T>> {
@@ -308,7 +278,6 @@ fn tsdf_integrate<'py>(
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(tsdf_integrate, m)?)?;
-    m.add_function(wrap_pyfunction!(knn, m)?)?;
     m.add_function(wrap_pyfunction!(grid_enclosing, m)?)?;
     m.add_function(wrap_pyfunction!(voxel_indices, m)?)?;
     m.add_function(wrap_pyfunction!(occupancy_dense, m)?)?;

@@ -5,6 +5,7 @@ mod args;
 mod consistency;
 mod errors;
 mod geometry;
+mod knn;
 mod layer;
 mod motion;
 mod sh;
@@ -56,6 +57,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     splat::register(m)?;
     layer::register(m)?;
     geometry::register(m)?;
+    knn::register(m)?;
     sh::register(m)?;
     motion::register(m)?;
     consistency::register(m)?;

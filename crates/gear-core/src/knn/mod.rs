@@ -32,11 +32,69 @@ pub enum Queries<'a> {
 /// candidate costing a block move of up to `k` entries.
 /// Equal distances are ordered arbitrarily but deterministically.
 pub fn knn(points: &[[f32; 3]], queries: Queries<'_>, k: usize) -> Result<Neighbours> {
+    match queries {
+        Queries::Points(q) => NearestTree::new(points)?.query(q, k),
+        Queries::SelfExcluded => {
+            check_k(k)?;
+            check_points(points)?;
+            if points.is_empty() {
+                return Ok(Neighbours::empty(k));
+            }
+            check_candidates(k, points.len() - 1, points.len(), ", self excluded")?;
+            Ok(search::self_neighbours(&KdTree::build(points), k))
+        }
+    }
+}
+
+/// A k-d tree over reference points, built once for many queries: stage 2's motion search
+/// asks one target state's centres for the nearest of a few hundred moved points about 10^5
+/// times, where [`knn`] would build the tree each time.
+pub struct NearestTree {
+    tree: KdTree,
+}
+
+impl NearestTree {
+    /// The tree over `points`; errors as [`knn`]'s for non-finite or too many points.
+    pub fn new(points: &[[f32; 3]]) -> Result<NearestTree> {
+        check_points(points)?;
+        Ok(NearestTree {
+            tree: KdTree::build(points),
+        })
+    }
+
+    /// Number of reference points.
+    pub fn len(&self) -> usize {
+        self.tree.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.tree.len() == 0
+    }
+
+    /// The `k` nearest reference points of each of `queries`, as [`knn`] with
+    /// [`Queries::Points`] (same results, same errors).
+    pub fn query(&self, queries: &[[f32; 3]], k: usize) -> Result<Neighbours> {
+        check_k(k)?;
+        check_finite(queries, "queries")?;
+        if queries.is_empty() {
+            return Ok(Neighbours::empty(k));
+        }
+        check_candidates(k, self.len(), self.len(), "")?;
+        Ok(search::query_neighbours(&self.tree, queries, k))
+    }
+}
+
+fn check_k(k: usize) -> Result<()> {
     if k == 0 {
         return Err(GearError::InvalidInput(
             "k: must be at least 1, got 0".into(),
         ));
     }
+    Ok(())
+}
+
+/// Finite coordinates, and few enough points for a u32 index.
+fn check_points(points: &[[f32; 3]]) -> Result<()> {
     check_finite(points, "points")?;
     if points.len() >= u32::MAX as usize {
         return Err(GearError::InvalidInput(format!(
@@ -45,32 +103,18 @@ pub fn knn(points: &[[f32; 3]], queries: Queries<'_>, k: usize) -> Result<Neighb
             u32::MAX - 1
         )));
     }
-    let (query_count, candidates, note) = match queries {
-        Queries::SelfExcluded => (
-            points.len(),
-            points.len().saturating_sub(1),
-            ", self excluded",
-        ),
-        Queries::Points(q) => {
-            check_finite(q, "queries")?;
-            (q.len(), points.len(), "")
-        }
-    };
-    if query_count == 0 {
-        return Ok(Neighbours::empty(k));
-    }
+    Ok(())
+}
+
+/// At least `k` of the `points` reference points are candidates for each query.
+fn check_candidates(k: usize, candidates: usize, points: usize, note: &str) -> Result<()> {
     if candidates < k {
         return Err(GearError::InvalidInput(format!(
             "k: asks for {k} neighbours but only {candidates} reference points are available \
-             ({} points{note})",
-            points.len()
+             ({points} points{note})"
         )));
     }
-    let tree = KdTree::build(points);
-    Ok(match queries {
-        Queries::SelfExcluded => search::self_neighbours(&tree, k),
-        Queries::Points(q) => search::query_neighbours(&tree, q, k),
-    })
+    Ok(())
 }
 
 /// Rejects NaN/Inf coordinates with the argument name and the first offending row.

@@ -50,8 +50,12 @@ pub(super) fn self_neighbours(tree: &KdTree, k: usize) -> Neighbours {
     )
 }
 
-/// Neighbours of each of `queries`, processed in Morton (Z-curve) order for locality.
+/// Neighbours of each of `queries`, processed in Morton (Z-curve) order for locality (a set
+/// of one task's size in its own order: sorting it would cost more than it saves).
 pub(super) fn query_neighbours(tree: &KdTree, queries: &[[f32; 3]], k: usize) -> Neighbours {
+    if queries.len() <= CHUNK {
+        return run(queries.len(), k, |pos| (queries[pos], u32::MAX, pos), tree);
+    }
     let order = morton_order(queries);
     run(
         queries.len(),
@@ -79,19 +83,24 @@ fn run(
         distances: distances.as_mut_ptr(),
         k,
     };
-    (0..count.div_ceil(CHUNK))
-        .into_par_iter()
-        .for_each(|chunk| {
-            let mut best = Best::new(k);
-            for pos in chunk * CHUNK..((chunk + 1) * CHUNK).min(count) {
-                let (q, skip, row) = query(pos);
-                best.clear();
-                visit(tree, 0, q, skip, &mut best);
-                // SAFETY: `row` is a permutation of 0..count over all positions, so every row is
-                // written by exactly one task, and it lies inside the buffers.
-                unsafe { rows.write(row, &best) };
-            }
-        });
+    let task = |chunk: usize| {
+        let mut best = Best::new(k);
+        for pos in chunk * CHUNK..((chunk + 1) * CHUNK).min(count) {
+            let (q, skip, row) = query(pos);
+            best.clear();
+            visit(tree, 0, q, skip, &mut best);
+            // SAFETY: `row` is a permutation of 0..count over all positions, so every row is
+            // written by exactly one task, and it lies inside the buffers.
+            unsafe { rows.write(row, &best) };
+        }
+    };
+    let chunks = count.div_ceil(CHUNK);
+    if chunks == 1 {
+        // One task: handing it to the pool and waiting costs more than a small query set.
+        task(0);
+    } else {
+        (0..chunks).into_par_iter().for_each(task);
+    }
     Neighbours {
         k,
         indices,

@@ -108,9 +108,16 @@ fn check_voxel_size(voxel_size: f64) -> Result<()> {
     }
 }
 
+/// Fewer points than this are indexed on the calling thread: stage 2 asks for the cells of a
+/// few hundred moved points ~10^5 times, where waking the pool costs more than the work.
+const PARALLEL_MIN_POINTS: usize = 1 << 14;
+
 /// The voxel of each point (`[i, j, k]`, possibly outside the grid).
 pub fn voxel_indices(grid: &GridSpec, points: &[[f32; 3]]) -> Result<Vec<[i64; 3]>> {
     check_finite(points, "points")?;
+    if points.len() < PARALLEL_MIN_POINTS {
+        return Ok(points.iter().map(|&p| grid.voxel_of(p)).collect());
+    }
     Ok(points.par_iter().map(|&p| grid.voxel_of(p)).collect())
 }
 

@@ -8,10 +8,12 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.fft import set_workers
 from scipy.signal import fftconvolve
-from scipy.spatial import cKDTree
 
+from gear import _core
 from gear.articulation import RigidMotion
+from gear.geometry import NearestTree
 
 # max/min principal extent above which a component is a plane (may turn on a hinge). Not 3: a
 # door reconstructed from few, small views blurs into what lies behind it (docs/method.md,
@@ -280,12 +282,17 @@ def correlate(grid: np.ndarray, src: np.ndarray) -> tuple[np.ndarray, np.ndarray
     cells = np.argwhere(src)
     lo, hi = cells.min(0), cells.max(0) + 1
     crop = src[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
-    counts = np.rint(fftconvolve(grid.astype(np.float32), crop[::-1, ::-1, ::-1], mode="full"))
+    # The transforms on the executor's threads (GEAR_THREADS); the counts are whole numbers
+    # rounded from sums that agree far closer than a half for any thread count.
+    with set_workers(_core.cpu_threads()):
+        counts = np.rint(
+            fftconvolve(grid.astype(np.float32), crop[::-1, ::-1, ::-1], mode="full")
+        )
     return counts, -(np.array(crop.shape) - 1) - lo
 
 
 def settle(
-    sample: np.ndarray, rot: np.ndarray, trans: np.ndarray, tree: cKDTree, steps: int
+    sample: np.ndarray, rot: np.ndarray, trans: np.ndarray, tree: NearestTree, steps: int
 ) -> np.ndarray:
     """The translation after `steps` moves of `sample` (turned by `rot`) by the mean offset
     to the nearest centre of `tree` of its nearest 80 % (the part of a piece the target state
@@ -302,7 +309,7 @@ def swept_hinges(
     points: np.ndarray,
     axes: Sequence[np.ndarray],
     starts: Sequence[np.ndarray],
-    tree: cKDTree,
+    tree: NearestTree,
     fit: Callable[[np.ndarray, np.ndarray, np.ndarray], float],
     keep: int = SWEEP_KEEP,
     step_deg: float = SWEEP_STEP_DEG,

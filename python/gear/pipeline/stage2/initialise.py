@@ -8,11 +8,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from gear.articulation import RigidMotion
 from gear.config import TrainConfig
 from gear.data.scene import STATES, other_state
+from gear.geometry import NearestTree
 from gear.pipeline.common import TrainView
 from gear.pipeline.runner import Runner
 from gear.pipeline.stage2.parts import coarse_init
@@ -80,7 +80,7 @@ def spread_logits(points: np.ndarray, keep: np.ndarray, logits: np.ndarray) -> n
     out = np.empty((len(points), logits.shape[1]), dtype=logits.dtype)
     out[keep] = logits
     if (~keep).any():
-        _, nearest = cKDTree(points[keep]).query(points[~keep], k=1)
+        _, nearest = NearestTree(points[keep]).query(points[~keep], k=1)
         out[~keep] = logits[nearest]
     return out
 

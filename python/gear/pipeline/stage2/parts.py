@@ -9,11 +9,11 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from gear import geometry
 from gear.articulation import RigidMotion
 from gear.data.scene import other_state
+from gear.geometry import NearestTree
 from gear.pipeline.stage2.frame import body_frame
 from gear.pipeline.stage2.frame_slides import FrameSlide, frame_slides
 from gear.pipeline.stage2.hypotheses import DETECT_OVERLAP, IDENTITY, Hypothesis, fit_plane
@@ -352,7 +352,7 @@ def _remainder_taken(split: VoxelSplit, remainder: np.ndarray, pieces: list[_Pie
     landed = float(lands.any(axis=1).mean())
     if landed < 1 - SPLIT_FRACTION or landed <= own.landed:
         return None
-    dist = np.stack([cKDTree(np.argwhere(piece.cells)).query(cells)[0] for piece in pieces],
+    dist = np.stack([NearestTree(np.argwhere(piece.cells)).query(cells)[0] for piece in pieces],
                     axis=1)
     landing_dist = np.where(lands, dist, np.inf)
     nearest = np.where(lands.any(axis=1), landing_dist.argmin(axis=1), dist.argmin(axis=1))

@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.cluster.vq import kmeans2
-from scipy.spatial import cKDTree
 
 from gear.articulation import RigidMotion
+from gear.geometry import NearestTree
 from gear.pipeline.stage2.hypotheses import Hypothesis
 from gear.pipeline.stage2.voxels import MIN_PART_VOXELS, VoxelSplit, init_motion
 
@@ -79,7 +79,7 @@ def _residuals(split: VoxelSplit, points: np.ndarray, motions: list[Hypothesis])
 
 
 def refine_rigid(
-    points: np.ndarray, rot: np.ndarray, trans: np.ndarray, tree: cKDTree, steps: int
+    points: np.ndarray, rot: np.ndarray, trans: np.ndarray, tree: NearestTree, steps: int
 ) -> RigidMotion:
     """(R, t) after `steps` of trimmed ICP of `points` onto the centres of `tree`: each step
     pairs the nearest 80 % of the moved points with their nearest centres and solves the

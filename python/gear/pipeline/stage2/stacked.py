@@ -11,10 +11,10 @@ stage 3's images then fit each half's motion, and its merge of parts read twice
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from gear import geometry
 from gear.articulation import RigidMotion
+from gear.geometry import NearestTree
 from gear.metrics import rotation_angle_deg
 from gear.pipeline.stage2.hypotheses import axis_of, dominant_plane
 
@@ -89,7 +89,7 @@ def halves_tilt(means: np.ndarray, beyond: np.ndarray, motion: RigidMotion,
     tilts = [_faces_tilt(means[beyond], means[~beyond], voxel_size)]
     if target is not None and len(target):
         rot, trans = (np.asarray(m, dtype=np.float64) for m in motion)
-        tree = cKDTree(target)
+        tree = NearestTree(target)
         near = []
         for half in (beyond, ~beyond):
             distance, index = tree.query(means[half] @ rot.T + trans)

@@ -9,10 +9,10 @@ from typing import Protocol
 
 import numpy as np
 from scipy.ndimage import maximum_filter
-from scipy.spatial import cKDTree
 
 from gear import geometry
 from gear.articulation import RigidMotion
+from gear.geometry import NearestTree
 from gear.pipeline.stage2.hypotheses import (
     DETECT_OVERLAP,
     IDENTITY,
@@ -119,7 +119,7 @@ class VoxelSplit:
     dyn_target: np.ndarray  # target dynamic cells, dilated by one voxel
     labels: tuple[np.ndarray, np.ndarray]  # component labels (canonical, target), 0 = none
     sizes: tuple[np.ndarray, np.ndarray]  # voxel counts per label, largest first
-    target_tree: cKDTree  # the target centres
+    target_tree: NearestTree  # the target centres
     spacing: float  # their median distance to the nearest other centre
     # Target pieces a canonical piece may turn onto (init_motion): (voxels, mask over the
     # target centres), largest first (see target_pieces).
@@ -284,7 +284,7 @@ def split_static_dynamic(
     # Scores tolerate one voxel: a thin moved surface lands on the neighbour cell of its match.
     near_occ = geometry.dilate(occ_t, 1)
     near_dyn = geometry.dilate(occ_t & ~static, 1)
-    tree = cKDTree(target)
+    tree = NearestTree(target)
     sample = target[:: max(1, len(target) // SPACING_SAMPLES)]
     spacing = float(np.median(tree.query(sample, k=2)[0][:, 1]))
     pieces = target_pieces(grid, target, labels[1], sizes[1])
