@@ -1,7 +1,7 @@
 //! Bindings of the blended-motion deformation (gear_core::motion): forward and backward in
 //! float32 (training) or float64 (gradient checks), chosen by the dtype of `means`.
 
-use gear_core::motion::{self, DeformInput, Real};
+use gear_core::motion::{self, Blendable, DeformInput};
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
@@ -19,7 +19,7 @@ struct Args<'py, T: Dtype> {
     qd: PyReadonlyArrayDyn<'py, T>,
 }
 
-impl<'py, T: Dtype + Real> Args<'py, T> {
+impl<'py, T: Dtype + Blendable> Args<'py, T> {
     fn new(arrays: [&Array<'py>; 5]) -> PyResult<Self> {
         let [means, quats, weights, qr, qd] = arrays;
         let means = array::<T>(means, "means", &[Dim::Any("N"), Dim::Fixed(3)])?;
@@ -59,7 +59,7 @@ fn rows<'py, T: Dtype>(py: Python<'py>, v: Vec<T>, width: usize) -> PyResult<Arr
 
 type Deformed<'py> = (Array<'py>, Array<'py>, Option<Array<'py>>);
 
-fn forward<'py, T: Dtype + Real>(
+fn forward<'py, T: Dtype + Blendable>(
     py: Python<'py>,
     arrays: [&Array<'py>; 5],
     softmax: bool,
@@ -80,7 +80,7 @@ type Gradients<'py> = (
     Option<Array<'py>>,
 );
 
-fn backward<'py, T: Dtype + Real>(
+fn backward<'py, T: Dtype + Blendable>(
     py: Python<'py>,
     arrays: [&Array<'py>; 5],
     grad_means: &Array<'py>,

@@ -6,11 +6,14 @@
 //!
 //! One pass per Gaussian replaces the chain of [N, K] tensor operations of the reference
 //! (`gear.kinematics.deform`), which costs an E-step tens of milliseconds at 90k Gaussians.
-//! Gaussians run in fixed chunks on the rasterizer's thread pool; the motions' gradients are
-//! summed per chunk, then over the chunks in order, so every result is bit-identical for any
-//! thread count.
+//! In f32 eight Gaussians run at once, one per SIMD lane (`chunk.rs`; the maths is written once
+//! over the lane type, `lane.rs`). Gaussians run in fixed chunks on the rasterizer's thread
+//! pool; the motions' gradients are summed per chunk, then over the chunks in order, so every
+//! result is bit-identical for any thread count.
 
 mod blend;
+mod chunk;
+mod lane;
 mod quat;
 
 #[cfg(test)]
@@ -19,14 +22,20 @@ mod tests;
 use num_traits::Float;
 use rayon::prelude::*;
 
-use self::blend::{backward_one, forward_one, GradientsOne, Motions};
+use self::chunk::{Chunks, Rows};
 use crate::error::{check_finite, invalid, Result};
 use crate::splat::cpu::global_pool;
 
-/// The element types the op runs in.
+/// The element types the native ops run in.
 pub trait Real: Float + Send + Sync + Into<f64> {}
 impl Real for f32 {}
 impl Real for f64 {}
+
+/// The element types the deformation runs in: f32 eight Gaussians at a time (SIMD lanes), f64
+/// one at a time.
+pub trait Blendable: Real + Chunks {}
+impl Blendable for f32 {}
+impl Blendable for f64 {}
 
 /// Gaussians per task: a chunk is ~0.1 ms of work, and inputs of one chunk stay on the calling
 /// thread (handing them to the pool costs more than they do).
@@ -125,121 +134,54 @@ impl<T: Real> DeformInput<'_, T> {
         }
         Ok(())
     }
-
-    /// Gaussian `i`'s weights: its row of `weights`, or their softmax (written to `buffer`).
-    fn weights_of<'s>(&'s self, i: usize, buffer: &'s mut [T]) -> &'s [T] {
-        let k = buffer.len();
-        let row = &self.weights[k * i..k * (i + 1)];
-        if !self.softmax {
-            return row;
-        }
-        if let Some(given) = self.softmax_weights {
-            return &given[k * i..k * (i + 1)];
-        }
-        // The largest logit subtracted first: every exponential is at most 1, none overflows.
-        let top = row.iter().fold(T::neg_infinity(), |m, &v| m.max(v));
-        let mut total = T::zero();
-        for (w, &v) in buffer.iter_mut().zip(row) {
-            *w = (v - top).exp();
-            total = total + *w;
-        }
-        for w in buffer.iter_mut() {
-            *w = *w / total;
-        }
-        buffer
-    }
-
-    fn motions(&self) -> Motions<T> {
-        let quats = |flat: &[T]| {
-            flat.chunks_exact(4)
-                .map(|q| [q[0], q[1], q[2], q[3]])
-                .collect()
-        };
-        Motions::new(quats(self.qr), quats(self.qd))
-    }
 }
 
-/// Turns the gradient with respect to softmax weights `w` into the one with respect to their
-/// logits, in place: dL/dl_p = w_p (dL/dw_p - sum_q w_q dL/dw_q).
-fn softmax_backward<T: Real>(w: &[T], grad: &mut [T]) {
-    let along = w
-        .iter()
-        .zip(grad.iter())
-        .fold(T::zero(), |s, (&w, &g)| s + w * g);
-    for (g, &w) in grad.iter_mut().zip(w) {
-        *g = w * (*g - along);
-    }
-}
-
-fn vec3<T: Copy>(v: &[T]) -> [T; 3] {
-    [v[0], v[1], v[2]]
-}
-
-fn quat4<T: Copy>(v: &[T]) -> [T; 4] {
-    [v[0], v[1], v[2], v[3]]
-}
-
-/// Runs `work` over the chunks (in the pool when there is more than one) and returns its
-/// results in chunk order.
-fn in_chunks<R: Send>(
+/// Runs `work` over the chunks of `out`'s rows (in the pool when there is more than one) and
+/// returns its results in chunk order.
+fn in_chunks<T: Send, R: Send>(
     n: usize,
-    work: impl Fn(std::ops::Range<usize>) -> R + Sync,
+    out: Rows<'_, T>,
+    work: impl Fn(std::ops::Range<usize>, Rows<'_, T>) -> R + Sync,
 ) -> Result<Vec<R>> {
-    let ranges: Vec<_> = (0..n.div_ceil(CHUNK))
-        .map(|c| c * CHUNK..((c + 1) * CHUNK).min(n))
-        .collect();
-    if ranges.len() <= 1 {
-        return Ok(ranges.into_iter().map(work).collect());
+    let runs = out.split(n, CHUNK);
+    if runs.len() <= 1 {
+        return Ok(runs.into_iter().map(|(r, rows)| work(r, rows)).collect());
     }
-    Ok(global_pool()?.install(|| ranges.into_par_iter().map(&work).collect()))
+    let pool = global_pool()?;
+    Ok(pool.install(|| {
+        runs.into_par_iter()
+            .map(|(r, rows)| work(r, rows))
+            .collect()
+    }))
 }
 
 /// The deformed means and rotations of `input`.
-pub fn forward<T: Real>(input: &DeformInput<'_, T>) -> Result<Deformed<T>> {
+pub fn forward<T: Blendable>(input: &DeformInput<'_, T>) -> Result<Deformed<T>> {
     input.validate()?;
-    let k = input.parts();
-    let motions = input.motions();
-    let chunks = in_chunks(input.len(), |range| {
-        let mut means = Vec::with_capacity(3 * range.len());
-        let mut quats = Vec::with_capacity(4 * range.len());
-        let mut softmax = Vec::with_capacity(if input.softmax { k * range.len() } else { 0 });
-        let mut weights = vec![T::zero(); k];
-        for i in range {
-            let w = input.weights_of(i, &mut weights);
-            let (m, q) = forward_one(
-                &vec3(&input.means[3 * i..]),
-                &quat4(&input.quats[4 * i..]),
-                w,
-                &motions,
-            );
-            means.extend_from_slice(&m);
-            quats.extend_from_slice(&q);
-            if input.softmax {
-                softmax.extend_from_slice(w);
-            }
-        }
-        (means, quats, softmax)
-    })?;
-    let mut out = Deformed {
-        means: Vec::with_capacity(input.means.len()),
-        quats: Vec::with_capacity(input.quats.len()),
-        weights: Vec::with_capacity(if input.softmax {
-            input.weights.len()
-        } else {
-            0
-        }),
+    let weights = if input.softmax {
+        input.weights.len()
+    } else {
+        0
     };
-    for (means, quats, weights) in chunks {
-        out.means.extend_from_slice(&means);
-        out.quats.extend_from_slice(&quats);
-        out.weights.extend_from_slice(&weights);
-    }
+    let mut out = Deformed {
+        means: vec![T::zero(); input.means.len()],
+        quats: vec![T::zero(); input.quats.len()],
+        weights: vec![T::zero(); weights],
+    };
+    let rows = Rows {
+        means: &mut out.means,
+        quats: &mut out.quats,
+        weights: &mut out.weights,
+    };
+    in_chunks(input.len(), rows, |range, rows| {
+        T::forward_chunk(input, range, rows)
+    })?;
     Ok(out)
 }
 
 /// Gradients of a loss with respect to `input`, given its gradients `grad_means` [N, 3] and
 /// `grad_quats` [N, 4] with respect to the outputs; the motions' only if `motion_grads`.
-pub fn backward<T: Real>(
+pub fn backward<T: Blendable>(
     input: &DeformInput<'_, T>,
     grad_means: &[T],
     grad_quats: &[T],
@@ -258,52 +200,23 @@ pub fn backward<T: Real>(
     check_finite("deform grad_means", grad_means)?;
     check_finite("deform grad_quats", grad_quats)?;
     let k = input.parts();
-    let motions = input.motions();
-    let chunks = in_chunks(input.len(), |range| {
-        let n = range.len();
-        let mut g = DeformGradients {
-            means: vec![T::zero(); 3 * n],
-            quats: vec![T::zero(); 4 * n],
-            weights: vec![T::zero(); k * n],
-            qr: vec![],
-            qd: vec![],
-        };
-        let mut sums = vec![[T::zero(); 4]; if motion_grads { 2 * k } else { 0 }];
-        let mut weights = vec![T::zero(); k];
-        for (r, i) in range.enumerate() {
-            let w = input.weights_of(i, &mut weights);
-            backward_one(
-                &vec3(&input.means[3 * i..]),
-                &quat4(&input.quats[4 * i..]),
-                w,
-                &motions,
-                &vec3(&grad_means[3 * i..]),
-                &quat4(&grad_quats[4 * i..]),
-                GradientsOne {
-                    mean: &mut g.means[3 * r..3 * r + 3],
-                    quat: &mut g.quats[4 * r..4 * r + 4],
-                    weights: &mut g.weights[k * r..k * (r + 1)],
-                    motions: motion_grads.then_some(&mut sums[..]),
-                },
-            );
-            if input.softmax {
-                softmax_backward(w, &mut g.weights[k * r..k * (r + 1)]);
-            }
-        }
-        (g, sums)
-    })?;
     let mut out = DeformGradients {
-        means: Vec::with_capacity(input.means.len()),
-        quats: Vec::with_capacity(input.quats.len()),
-        weights: Vec::with_capacity(input.weights.len()),
+        means: vec![T::zero(); input.means.len()],
+        quats: vec![T::zero(); input.quats.len()],
+        weights: vec![T::zero(); input.weights.len()],
         qr: vec![T::zero(); if motion_grads { 4 * k } else { 0 }],
         qd: vec![T::zero(); if motion_grads { 4 * k } else { 0 }],
     };
+    let rows = Rows {
+        means: &mut out.means,
+        quats: &mut out.quats,
+        weights: &mut out.weights,
+    };
+    let chunks = in_chunks(input.len(), rows, |range, rows| {
+        T::backward_chunk(input, (grad_means, grad_quats), motion_grads, range, rows)
+    })?;
     // Chunk order: the motions' sums do not depend on how the chunks were scheduled.
-    for (g, sums) in chunks {
-        out.means.extend_from_slice(&g.means);
-        out.quats.extend_from_slice(&g.quats);
-        out.weights.extend_from_slice(&g.weights);
+    for sums in chunks {
         for (p, s) in sums.iter().enumerate() {
             let target = if p < k {
                 &mut out.qr[4 * p..4 * p + 4]

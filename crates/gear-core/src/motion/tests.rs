@@ -1,8 +1,7 @@
 //! The op against central finite differences of itself in f64, f32 against f64, hard cases
-//! (a vanishing mix, opposite quaternion signs, half turns) and the chunked driver against one
-//! Gaussian at a time.
+//! (a vanishing mix, opposite quaternion signs, half turns) and the f32 driver (eight
+//! Gaussians per SIMD lane, in chunks) against one Gaussian at a time.
 
-use super::blend::{backward_one, forward_one, GradientsOne};
 use super::*;
 
 /// A named input array of a scene, for the finite-difference loop.
@@ -355,64 +354,97 @@ fn hard_cases_stay_finite() {
     }
 }
 
+/// Gaussian `i` of `scene` alone, as a scene of one.
+fn alone(scene: &Scene<f32>, i: usize) -> Scene<f32> {
+    let k = scene.qr.len() / 4;
+    Scene {
+        means: scene.means[3 * i..3 * i + 3].to_vec(),
+        quats: scene.quats[4 * i..4 * i + 4].to_vec(),
+        weights: scene.weights[k * i..k * (i + 1)].to_vec(),
+        qr: scene.qr.clone(),
+        qd: scene.qd.clone(),
+        softmax: scene.softmax,
+    }
+}
+
 #[test]
-fn chunks_match_one_gaussian_at_a_time() {
-    // Over several chunks, each Gaussian's outputs and gradients are its own pass's, and the
-    // motions' gradients the chunks' sums added in chunk order.
+fn lanes_match_one_gaussian_at_a_time() {
+    // In f32 a chunk runs eight Gaussians per SIMD lane and its last few alone: over several
+    // chunks (each with a tail), each Gaussian's outputs and gradients are the bits it gets
+    // deformed alone, with weights and with logits, among them Gaussians whose mix vanishes
+    // (all weights zero) beside live ones; the motions' gradients are the chunks' sums added
+    // in chunk order.
     let k = 3;
     let n = 2 * CHUNK + 17;
-    let mut scene = random_scene(21, n, k);
-    scene.weights.iter_mut().for_each(|w| *w = w.powi(4));
-    let scene32 = scene.map(|x| x as f32);
-    let input = scene32.input();
-    let (m, q, w) = (input.means, input.quats, input.weights);
-    let gm: Vec<f32> = (0..m.len()).map(|i| (i % 7) as f32 - 3.0).collect();
-    let gq: Vec<f32> = (0..q.len()).map(|i| (i % 5) as f32 * 0.1).collect();
-    let out = forward(&input).unwrap();
-    let g = backward(&input, &gm, &gq, true).unwrap();
-    let motions = input.motions();
-    let mut total = vec![[0.0f32; 4]; 2 * k];
-    for start in (0..n).step_by(CHUNK) {
-        let mut chunk = vec![[0.0f32; 4]; 2 * k];
-        for i in start..(start + CHUNK).min(n) {
-            let (mi, qi) = forward_one(
-                &vec3(&m[3 * i..]),
-                &quat4(&q[4 * i..]),
-                &w[k * i..k * (i + 1)],
-                &motions,
-            );
-            assert_eq!(&out.means[3 * i..3 * i + 3], &mi[..], "mean {i}");
-            assert_eq!(&out.quats[4 * i..4 * i + 4], &qi[..], "quat {i}");
-            let (mut a, mut b, mut c) = ([0.0f32; 3], [0.0f32; 4], vec![0.0f32; k]);
-            backward_one(
-                &vec3(&m[3 * i..]),
-                &quat4(&q[4 * i..]),
-                &w[k * i..k * (i + 1)],
-                &motions,
-                &vec3(&gm[3 * i..]),
-                &quat4(&gq[4 * i..]),
-                GradientsOne {
-                    mean: &mut a,
-                    quat: &mut b,
-                    weights: &mut c,
-                    motions: Some(&mut chunk),
-                },
-            );
-            assert_eq!(&g.means[3 * i..3 * i + 3], &a[..], "grad mean {i}");
-            assert_eq!(&g.quats[4 * i..4 * i + 4], &b[..], "grad quat {i}");
-            assert_eq!(&g.weights[k * i..k * (i + 1)], &c[..], "grad weights {i}");
-        }
-        for (t, c) in total.iter_mut().zip(&chunk) {
-            *t = std::array::from_fn(|j| t[j] + c[j]);
-        }
+    let mut plain = random_scene(21, n, k);
+    for (i, row) in plain.weights.chunks_exact_mut(k).enumerate() {
+        row.iter_mut()
+            .for_each(|w| *w = if i % 5 == 0 { 0.0 } else { w.powi(4) });
     }
-    let flat: Vec<f32> = total.iter().flatten().copied().collect();
-    assert_eq!(&g.qr[..], &flat[..4 * k]);
-    assert_eq!(&g.qd[..], &flat[4 * k..]);
-    // Held motions: the same gradients for the Gaussians, none for the motions.
-    let held = backward(&input, &gm, &gq, false).unwrap();
-    assert_eq!((&held.means, &held.weights), (&g.means, &g.weights));
-    assert!(held.qr.is_empty() && held.qd.is_empty());
+    for scene in [
+        plain.map(|x| x as f32),
+        random_logit_scene(22, n, k).map(|x| x as f32),
+    ] {
+        let input = scene.input();
+        let gm: Vec<f32> = (0..3 * n).map(|i| (i % 7) as f32 - 3.0).collect();
+        let gq: Vec<f32> = (0..4 * n).map(|i| (i % 5) as f32 * 0.1).collect();
+        let out = forward(&input).unwrap();
+        let g = backward(&input, &gm, &gq, true).unwrap();
+        for i in 0..n {
+            let one = alone(&scene, i);
+            let (m, q) = (&gm[3 * i..3 * i + 3], &gq[4 * i..4 * i + 4]);
+            let (o, gi) = (
+                forward(&one.input()).unwrap(),
+                backward(&one.input(), m, q, true).unwrap(),
+            );
+            let softmax = scene.softmax;
+            assert_eq!(
+                &out.means[3 * i..3 * i + 3],
+                &o.means[..],
+                "mean {i} {softmax}"
+            );
+            assert_eq!(
+                &out.quats[4 * i..4 * i + 4],
+                &o.quats[..],
+                "quat {i} {softmax}"
+            );
+            if softmax {
+                assert_eq!(&out.weights[k * i..k * (i + 1)], &o.weights[..], "w {i}");
+            }
+            assert_eq!(&g.means[3 * i..3 * i + 3], &gi.means[..], "grad mean {i}");
+            assert_eq!(&g.quats[4 * i..4 * i + 4], &gi.quats[..], "grad quat {i}");
+            assert_eq!(
+                &g.weights[k * i..k * (i + 1)],
+                &gi.weights[..],
+                "grad w {i}"
+            );
+        }
+        assert_eq!(out.weights.is_empty(), !scene.softmax);
+        let (mut qr, mut qd) = (vec![0.0f32; 4 * k], vec![0.0f32; 4 * k]);
+        for start in (0..n).step_by(CHUNK) {
+            let end = (start + CHUNK).min(n);
+            let part = DeformInput {
+                means: &input.means[3 * start..3 * end],
+                quats: &input.quats[4 * start..4 * end],
+                weights: &input.weights[k * start..k * end],
+                ..input
+            };
+            let gp = backward(
+                &part,
+                &gm[3 * start..3 * end],
+                &gq[4 * start..4 * end],
+                true,
+            );
+            let gp = gp.unwrap();
+            qr.iter_mut().zip(&gp.qr).for_each(|(t, v)| *t += v);
+            qd.iter_mut().zip(&gp.qd).for_each(|(t, v)| *t += v);
+        }
+        assert_eq!((&g.qr, &g.qd), (&qr, &qd));
+        // Held motions: the same gradients for the Gaussians, none for the motions.
+        let held = backward(&input, &gm, &gq, false).unwrap();
+        assert_eq!((&held.means, &held.weights), (&g.means, &g.weights));
+        assert!(held.qr.is_empty() && held.qd.is_empty());
+    }
 }
 
 #[test]

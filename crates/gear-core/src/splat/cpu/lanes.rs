@@ -31,18 +31,18 @@ macro_rules! with_avx2 {
         }
     };
 }
-pub(super) use with_avx2;
+pub(crate) use with_avx2;
 
-pub(super) const LANES: usize = 8;
-pub(super) type Lanes = [f32; LANES];
+pub(crate) const LANES: usize = 8;
+pub(crate) type Lanes = [f32; LANES];
 /// Per-lane conditions as all-ones-or-zero u32s, applied with bitwise operations: bool arrays
 /// and per-lane branches would compile to scalar code per lane.
-pub(super) type Mask = [u32; LANES];
+pub(crate) type Mask = [u32; LANES];
 
 /// `[f(0), f(1), ...]` as `std::array::from_fn` builds it, but always inlined: from_fn's
 /// element calls stay out-of-line calls, outside the AVX2 code and one per element.
 #[inline(always)]
-pub(super) fn array<T: Copy + Default, const N: usize>(mut f: impl FnMut(usize) -> T) -> [T; N] {
+pub(crate) fn array<T: Copy + Default, const N: usize>(mut f: impl FnMut(usize) -> T) -> [T; N] {
     let mut out = [T::default(); N];
     for (i, o) in out.iter_mut().enumerate() {
         *o = f(i);
@@ -78,7 +78,7 @@ const ROUND: f32 = 12_582_912.0;
 /// e^x to within a few f32 ulps for x in [-87, 88] (inputs are clamped to it): x = n ln 2 + r,
 /// a degree-6 polynomial for e^r on |r| <= ln 2 / 2, and 2^n written into the exponent bits.
 #[inline(always)]
-pub(super) fn exp(x: f32) -> f32 {
+pub(crate) fn exp(x: f32) -> f32 {
     let x = x.clamp(-87.0, 88.0);
     let shifted = x * LOG2E + ROUND;
     let n = shifted - ROUND;

@@ -13,13 +13,13 @@
 mod bins;
 mod blend;
 mod blend_backward;
-mod lanes;
+pub(crate) mod lanes;
 mod layer;
 mod lists;
 mod pool;
 mod project;
 mod spares;
-mod wide;
+pub(crate) mod wide;
 
 #[cfg(test)]
 mod tests;

@@ -12,7 +12,7 @@ use std::ops::{Add, Div, Mul, Neg, Sub};
 use super::lanes::{self, array, mask, Lanes, Mask, LANES};
 
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub(super) struct F8(pub Lanes);
+pub(crate) struct F8(pub Lanes);
 
 impl F8 {
     #[inline(always)]
