@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.fft import set_workers
+from scipy.optimize import minimize
 from scipy.signal import fftconvolve
 
 from gear import _core
@@ -37,6 +38,15 @@ SWEEP_SAMPLES = 100
 SWEEP_SETTLE = 10
 SWEEP_KEEP = 3
 SWEEP_TARGETS = 3  # the largest target pieces a blob's turns start on
+# Local search of a thick piece's hinge (refine_turn): how far its axis may tilt, its pivot
+# move (a fraction of the piece's largest extent) and its angle change, the centres sampled,
+# and the evaluations allowed.
+REFINE_TILT_DEG = 30.0
+REFINE_PIVOT = 0.5
+REFINE_ANGLE_DEG = 20.0
+REFINE_SAMPLES = 1000
+REFINE_EVALUATIONS = 600
+REFINE_WIDTHS = (1 / 8, 1 / 32)
 
 
 @dataclass
@@ -345,3 +355,48 @@ def swept_hinges(
         refined.append((fit(fine, rot, trans), rot, trans))
     refined.sort(key=lambda s: -s[0])
     return [(rot, trans) for _, rot, trans in refined[:keep]]
+
+
+def refine_turn(
+    points: np.ndarray, rot: np.ndarray, trans: np.ndarray, extent: float,
+    fit: Callable[..., float],
+) -> RigidMotion:
+    """The turn (R, t) of `points` refined to a maximum of `fit(points, R, t, width=w)`
+    (higher is better; VoxelSplit.surface_fit): its axis tilted by up to REFINE_TILT_DEG, its
+    pivot moved across the axis by up to REFINE_PIVOT times `extent` and its angle changed by
+    up to REFINE_ANGLE_DEG (Powell's method, on a sample of the centres; no slide along the
+    axis is added). For a piece whose plane leaves its normal loose (a thick lid): the
+    intersection of two such planes can miss the hinge by tens of degrees, while the surface
+    fit, smooth in the motion, climbs from there to the turn that lays the piece on the
+    target's centres. Coarse to fine: first with widths of REFINE_WIDTHS times `extent`, then
+    with the fit's own (a voxel or so). At that width alone, a lid shifted by a few
+    centimetres along its length still lands half on itself, a maximum the search stops at."""
+    pts = np.asarray(points, dtype=np.float64)
+    sample = pts[:: max(1, len(pts) // REFINE_SAMPLES)]
+    axis = axis_of(rot)
+    sine = 0.5 * float(axis @ np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0],
+                                        rot[1, 0] - rot[0, 1]]))
+    angle = float(np.arctan2(sine, (np.trace(rot) - 1) / 2))
+    # The pivot on the axis' line nearest the piece's centroid: (I - R) p = t holds for every
+    # point of the line (t has no part along the axis for a pure turn).
+    pivot = np.linalg.lstsq(np.eye(3) - rot, trans, rcond=None)[0]
+    pivot = pivot + axis * float(axis @ (pts.mean(axis=0) - pivot))
+    across = np.linalg.svd(axis[None, :])[2][1:]  # two unit directions square to the axis
+    scale = max(extent, 1e-12)
+    tilt = np.tan(np.deg2rad(REFINE_TILT_DEG))
+
+    def motion(x: np.ndarray) -> RigidMotion:
+        # The tilt's two components are bounded together (a cone, not a square's corners).
+        lean = x[:2] * min(1.0, tilt / max(float(np.linalg.norm(x[:2])), 1e-300))
+        tilted = axis + lean[0] * across[0] + lean[1] * across[1]
+        return rotation_about_line(tilted, pivot + scale * (x[2] * across[0] + x[3] * across[1]),
+                                   angle + x[4])
+
+    turn = np.deg2rad(REFINE_ANGLE_DEG)
+    bounds = [(-tilt, tilt)] * 2 + [(-REFINE_PIVOT, REFINE_PIVOT)] * 2 + [(-turn, turn)]
+    x = np.zeros(5)
+    for width in [scale * f for f in REFINE_WIDTHS] + [None]:
+        x = minimize(lambda x, w=width: -fit(sample, *motion(x), width=w), x, method="Powell",
+                     bounds=bounds, options={"maxfev": REFINE_EVALUATIONS, "xtol": 1e-3,
+                                             "ftol": 1e-4}).x
+    return motion(x)

@@ -27,6 +27,7 @@ from gear.pipeline.stage2.hypotheses import (
     edge_hinges,
     fit_plane,
     hinge_candidates,
+    refine_turn,
     rod_hinges,
     swept_hinges,
 )
@@ -55,6 +56,7 @@ CELLS_SINGLE = 16
 CELLS_MULTI = 100
 SPACING_FACTOR = 2.0
 MIN_PART_VOXELS = 8  # a component smaller than this is no part
+REFINE_STARTS = 3  # the best-fitting turns of a thick piece refined (_thick_turn)
 FOLD_MARGIN = 0.15  # surface_fit a half-turn fold needs above a turn to go first
 BLOB_MARGIN = 0.05  # surface_fit a blob's turn needs above the best slide to be tried
 BLOB_LANDED = 0.8  # ... and the fraction of its cells it must land on target matter
@@ -194,17 +196,19 @@ class VoxelSplit:
         return replace(self, exact_target=self.exact_target & ~claimed,
                        occ_target=self.occ_target & ~claimed)
 
-    def surface_fit(self, points: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> float:
+    def surface_fit(self, points: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+                    width: float | None = None) -> float:
         """How closely `points` moved by p -> R p + t lie on the target's centres: the mean of
         exp(-(d / w)^2) over their distances d to the nearest target centre, w twice the
-        target's median centre spacing or a voxel, whichever is larger. Unlike the voxel
+        target's median centre spacing or a voxel, whichever is larger (or `width` when given:
+        a coarse-to-fine search starts wider). Unlike the voxel
         scores it varies smoothly with the motion. Not the spacing alone: the two states'
         reconstructions agree to about a voxel, and a long run packs its centres 20-50 times
         closer than that, where only exact coincidences would count (a blade turned by the
         right angle scored 0.02, as low as any wrong turn)."""
         moved = points @ np.asarray(rot).T + np.asarray(trans)
         dist, _ = self.target_tree.query(moved, k=1)
-        width = max(2 * self.spacing, self.grid.voxel_size)
+        width = width or max(2 * self.spacing, self.grid.voxel_size)
         return float(np.exp(-((dist / width) ** 2)).mean())
 
     def best_slide(self, src_mask: np.ndarray) -> np.ndarray | None:
@@ -396,6 +400,30 @@ def near_tie_order(first: Hypothesis, second: Hypothesis) -> tuple[Hypothesis, H
     return (slide, hinge) if slide_first else (hinge, slide)
 
 
+def _thick_turn(
+    split: VoxelSplit, src_cells: np.ndarray, points: np.ndarray, plane: Plane,
+    turns: list[tuple[float, Hypothesis]],
+) -> tuple[float, Hypothesis]:
+    """Of the turns `turns` of the cells `src_cells` holding `points`, as (surface fit,
+    hypothesis) best fit first, for a piece that is a plane by its aspect but no slab (`plane`:
+    not flat, not a rod): the REFINE_STARTS best refined by hypotheses.refine_turn, the one
+    fitting best when it lands at least as many cells on target matter as the best unrefined
+    turn, else that turn. Such a piece's normal is loosely held (a stapler's lid, 0.38 by 0.21
+    by 0.15: its plane intersections with the target's pieces missed the hinge by 13-25
+    degrees); a slab's is not, and there the surface fit, which also rewards landing on the
+    static body, would trade one hinge's accuracy for another's."""
+    refined = []
+    for _, hinge in turns[:REFINE_STARTS]:
+        rot, trans = refine_turn(points, hinge.rot, hinge.trans, float(plane.extents[0]),
+                                 split.surface_fit)
+        refined.append((split.surface_fit(points, rot, trans), rot, trans))
+    fit, rot, trans = max(refined, key=lambda r: r[0])
+    best = split.score(src_cells, "hinge", rot, trans)
+    if not (best.trusted and best.landed >= turns[0][1].landed):
+        return turns[0]
+    return fit, best
+
+
 def init_motion(
     split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray, of_size: int | None = None,
     sweep: bool = True,
@@ -409,7 +437,9 @@ def init_motion(
     planar; each also about both edges of the slab (the two sides a hinge can be on); for a
     piece neither planar nor a rod, the swept turns of blob_hinges, and for a flat one its
     turns about its normal (in_plane_turns), both unless `sweep` is False; the one whose
-    centres land closest (VoxelSplit.surface_fit), and the best whole-voxel slide. Among those
+    centres land closest (VoxelSplit.surface_fit), for a plane that is neither flat nor a rod
+    refined by a local search (_thick_turn, also unless `sweep` is False), and the best
+    whole-voxel slide. Among those
     explaining enough target change, the one landing most cells on target matter wins (a hinge
     on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
     follows when it lands within TIE_MARGIN of the winner (near_tie_order puts them in order), or
@@ -463,6 +493,11 @@ def init_motion(
         if members:
             hinge = max(members, key=lambda m: m[0])[1]
             best_of[family] = (split.surface_fit(points, hinge.rot, hinge.trans), hinge)
+    if False in best_of and sweep and canon_plane.is_plane \
+            and not (canon_plane.is_flat or canon_plane.is_rod):
+        turns = sorted(((f, h) for f, h in zip(fits, hinges, strict=True) if not h.fold),
+                       key=lambda m: -m[0])
+        best_of[False] = _thick_turn(split, src_cells, points, canon_plane, turns)
     spare_hinge = None
     if best_of:
         # A turn goes first unless a fold lands its centres clearly closer: a symmetric piece
