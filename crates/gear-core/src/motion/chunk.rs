@@ -70,8 +70,10 @@ pub trait Chunks: Sized {
     ) -> MotionSums<Self>;
 }
 
+/// Zeroed sums of the motions' gradients, one quaternion per part's qr and one per its qd
+/// (none unless `wanted`).
 fn motion_sums<L: Lane>(input: &DeformInput<'_, L::Scalar>, wanted: bool) -> Vec<Quat<L>> {
-    vec![[L::zero(); 4]; if wanted { input.qr.len() / 2 } else { 0 }]
+    vec![[L::zero(); 4]; if wanted { 2 * input.parts() } else { 0 }]
 }
 
 impl Chunks for f64 {
@@ -235,7 +237,7 @@ fn forward_lanes<L: Lane>(
     base: usize,
     out: &mut Rows<L::Scalar>,
 ) {
-    let k = input.qr.len() / 4;
+    let k = input.parts();
     let motions = Motions::<L>::new(input.qr, input.qd);
     let (mut weights, mut signs) = (vec![L::zero(); k], vec![L::zero(); k]);
     for first in range.step_by(L::WIDTH) {
@@ -263,7 +265,7 @@ fn backward_lanes<L: Lane>(
     out: &mut Rows<L::Scalar>,
     mut sums: Option<&mut [Quat<L>]>,
 ) {
-    let k = input.qr.len() / 4;
+    let k = input.parts();
     let motions = Motions::<L>::new(input.qr, input.qd);
     let mut weights = vec![L::zero(); k];
     let mut signs = vec![L::zero(); k];

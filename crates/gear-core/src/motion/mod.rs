@@ -79,7 +79,7 @@ pub struct DeformGradients<T> {
     pub qd: Vec<T>,
 }
 
-impl<T: Real> DeformInput<'_, T> {
+impl<T> DeformInput<'_, T> {
     /// Number of Gaussians.
     pub fn len(&self) -> usize {
         self.means.len() / 3
@@ -93,7 +93,9 @@ impl<T: Real> DeformInput<'_, T> {
     pub fn parts(&self) -> usize {
         self.qr.len() / 4
     }
+}
 
+impl<T: Real> DeformInput<'_, T> {
     /// Checks the array lengths against each other and that every value is finite.
     pub fn validate(&self) -> Result<()> {
         let k = self.parts();
