@@ -1,7 +1,8 @@
 """Stage 2's split of one dynamic piece by the motions its regions need
 (`regions.motion_regions`): two doors on one hinge line, turned by different angles, touch
 along their shared edge and form one piece; they must come out as two regions, each one
-door, while two doors turned alike (one rigid motion) stay one region."""
+door, while two doors turned alike (one rigid motion) stay one region; and the one motion
+of two pieces (`regions.one_motion`), the test by which a piece joins a part."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gear.pipeline.stage2.regions import motion_regions, refine_rigid
+from gear.pipeline.stage2.hypotheses import Hypothesis
+from gear.pipeline.stage2.regions import MERGE_COST, motion_regions, one_motion, refine_rigid
 from gear.pipeline.stage2.voxels import Scale, init_motion, split_static_dynamic
 from test_coarse import FRONT, box_surface, hinge_motion
 
@@ -115,3 +117,36 @@ def test_refine_rigid_stops_at_a_fixed_point_with_the_bits_of_more_steps():
     again = refine_rigid(points, *short, tree, 1)
     for got in (long, again):
         assert np.array_equal(got[0], short[0]) and np.array_equal(got[1], short[1])
+
+
+def door_pieces(top_deg: float, bottom_deg: float):
+    """The split of the stacked doors (open state canonical) and each door's centres there."""
+    closed, opened, owner = stacked_doors(top_deg, bottom_deg, noise=FINE_NOISE)
+    split = split_static_dynamic(opened, closed,
+                                 Scale.of(np.concatenate([opened, closed])).voxel_size(False))
+    return split, opened[owner == 1], opened[owner == 2]
+
+
+def closing(deg: float) -> Hypothesis:
+    """The turn closing a door opened by `deg` about the doors' hinge line."""
+    rot, trans = hinge_motion([0.0, 0.0, -1.0], [0.0, -0.025, 0.0], -deg)
+    return Hypothesis("hinge", rot, trans)
+
+
+def test_one_motion_of_two_pieces_read_apart_lies_between_their_readings():
+    """Two doors turned alike are one rigid motion: read 6 degrees too far one way and 6 the
+    other (as the pieces of a noisy model can be), one motion of both costs them no more than
+    their two readings apart, and it is the true turn."""
+    split, top, bottom = door_pieces(30.0, 30.0)
+    extra, joint = one_motion(split, [(top, closing(36.0)), (bottom, closing(24.0))])
+    assert extra <= MERGE_COST
+    truth = closing(30.0)
+    both = np.concatenate([top, bottom])
+    apart = np.linalg.norm(both @ (joint.rot - truth.rot).T + (joint.trans - truth.trans), axis=1)
+    assert apart.max() < 2 * FINE_NOISE + 0.25 * split.grid.voxel_size
+
+
+def test_one_motion_of_two_doors_turned_apart_costs_more():
+    split, top, bottom = door_pieces(40.0, 10.0)
+    extra, _ = one_motion(split, [(top, closing(40.0)), (bottom, closing(10.0))])
+    assert extra > MERGE_COST

@@ -105,6 +105,39 @@ def refine_rigid(
     return rot, trans
 
 
+def refined_cost(
+    split: VoxelSplit, points: np.ndarray, starts: tuple[Hypothesis, ...]
+) -> tuple[float, Hypothesis]:
+    """The one rigid motion of the centres `points` that costs them least (mean capped residual
+    per centre, on a subsample of ICP_POINTS) among `starts` each refined by trimmed ICP on
+    them (refine_rigid), as (cost, motion). Motions fitted to pieces of a part may each miss
+    the part's; the part's own lies between them."""
+    fit_to = points[:: -(-len(points) // ICP_POINTS)]
+    best = None
+    for start in starts:
+        rot, trans = refine_rigid(fit_to, start.rot, start.trans, split.target_tree, ICP_STEPS)
+        motion = Hypothesis(start.kind, rot, trans)
+        cost = float(_residuals(split, fit_to, [motion]).mean())
+        if best is None or cost < best[0]:
+            best = (cost, motion)
+    if best is None:
+        raise ValueError("refined_cost: no motion to start from")
+    return best
+
+
+def one_motion(
+    split: VoxelSplit, pieces: list[tuple[np.ndarray, Hypothesis]]
+) -> tuple[float, Hypothesis]:
+    """The one rigid motion of several pieces together (refined_cost, from each piece's
+    motion) and how much more it costs their centres than each piece's own motion, per centre
+    (compare with MERGE_COST), as (extra cost, motion); `pieces` holds (centres, own motion)
+    pairs."""
+    points = np.concatenate([p for p, _ in pieces])
+    apart = np.concatenate([_residuals(split, p, [m])[0] for p, m in pieces])
+    together, motion = refined_cost(split, points, tuple(m for _, m in pieces))
+    return together - float(apart[:: -(-len(points) // ICP_POINTS)].mean()), motion
+
+
 def extra_residual(
     split: VoxelSplit, points: np.ndarray, motion: Hypothesis, own: list[Hypothesis]
 ) -> float:
@@ -161,22 +194,15 @@ def motion_regions(
             # differently, but the same turn).
             a, b = motions[int(sum_a.argmin())], motions[int(sum_b.argmin())]
             held = points[np.isin(point_chunk, list(chunks_a | chunks_b))]
-            fit_to = held[:: -(-len(held) // ICP_POINTS)]
             if np.median(np.linalg.norm(held @ (a.rot - b.rot).T + (a.trans - b.trans),
                                         axis=1)) <= agree:
                 return 0.0
             merged = float((sum_a + sum_b).min())
             # The candidates were fitted to chunks; one rigid motion of the two together may
-            # lie between them: each region's best, refined on both (trimmed ICP).
+            # lie between them: each region's best, refined on both.
             key = (frozenset(chunks_a), frozenset(chunks_b))
             if key not in refined:
-                costs = []
-                for m in (a, b):
-                    rot, trans = refine_rigid(fit_to, m.rot, m.trans, split.target_tree,
-                                              ICP_STEPS)
-                    costs.append(_residuals(split, fit_to, [Hypothesis("hinge", rot, trans)])
-                                 .mean() * (n_a + n_b))
-                refined[key] = min(costs)
+                refined[key] = refined_cost(split, held, (a, b))[0] * (n_a + n_b)
             merged = min(merged, refined[key])
             return (merged - sum_a.min() - sum_b.min()) / max(1, n_a + n_b)
 
