@@ -201,11 +201,11 @@ class VoxelSplit:
         """How closely `points` moved by p -> R p + t lie on the target's centres: the mean of
         exp(-(d / w)^2) over their distances d to the nearest target centre, w twice the
         target's median centre spacing or a voxel, whichever is larger (or `width` when given:
-        a coarse-to-fine search starts wider). Unlike the voxel
-        scores it varies smoothly with the motion. Not the spacing alone: the two states'
-        reconstructions agree to about a voxel, and a long run packs its centres 20-50 times
-        closer than that, where only exact coincidences would count (a blade turned by the
-        right angle scored 0.02, as low as any wrong turn)."""
+        a coarse-to-fine search starts wider). Unlike the voxel scores it varies smoothly with
+        the motion. Not the spacing alone: the two states' reconstructions agree to about a
+        voxel, and a long run packs its centres 20-50 times closer than that, where only exact
+        coincidences would count (a blade turned by the right angle scored 0.02, as low as any
+        wrong turn)."""
         moved = points @ np.asarray(rot).T + np.asarray(trans)
         dist, _ = self.target_tree.query(moved, k=1)
         width = width or max(2 * self.spacing, self.grid.voxel_size)
@@ -439,14 +439,13 @@ def init_motion(
     turns about its normal (in_plane_turns), both unless `sweep` is False; the one whose
     centres land closest (VoxelSplit.surface_fit), for a plane that is neither flat nor a rod
     refined by a local search (_thick_turn, also unless `sweep` is False), and the best
-    whole-voxel slide. Among those
-    explaining enough target change, the one landing most cells on target matter wins (a hinge
-    on ties); [IDENTITY] when none qualifies. The best trusted hypothesis of the other kind
-    follows when it lands within TIE_MARGIN of the winner (near_tie_order puts them in order), or
-    whatever it lands when it is a fold: a slab turned by half a turn shows the other state its
-    formerly hidden face, so half of it lands where that state saw nothing (the back of a closed
-    door), while a slide of the symmetric slab lands both faces; the voxels cannot tell the two
-    apart, the images can.
+    whole-voxel slide. Among those explaining enough target change, the one landing most
+    cells on target matter wins (a hinge on ties); [IDENTITY] when none qualifies. The best
+    trusted hypothesis of the other kind follows when it lands within TIE_MARGIN of the winner
+    (near_tie_order puts them in order), or whatever it lands when it is a fold: a slab turned
+    by half a turn shows the other state its formerly hidden face, so half of it lands where
+    that state saw nothing (the back of a closed door), while a slide of the symmetric slab
+    lands both faces; the voxels cannot tell the two apart, the images can.
     """
     src_cells = np.argwhere(src_mask)
     canon_plane = fit_plane(points)
