@@ -572,11 +572,11 @@ class _PartSearch:
         lands each of them within TIE_MARGIN of its own motion (a piece that lands nowhere
         under any motion, matter only one state shows, costs as much alone as joined), in
         line with it when it slides (_in_line: two drawers of a column pulled alike stay two
-        parts). Two
-        pieces of one thick lid read apart fit two turns 21 degrees apart (the real stapler
-        at fast: the smaller piece's own turn, 23 degrees off the hinge, lands it 0.93 and
-        the lid's, 1.8 degrees off, only 0.79), while one motion of both lands each about as
-        well (0.91 and 0.89 against 0.92 and 0.93) and costs 0.006 more per centre."""
+        parts). Two pieces of one thick lid read apart fit two turns 21 degrees apart (the
+        real stapler at fast: the smaller piece's own turn, 23 degrees off the hinge, lands
+        it 0.93 and the lid's, 1.8 degrees off, only 0.79), while one motion of both lands
+        each about as well (0.91 and 0.89 against 0.92 and 0.93) and costs 0.001 less per
+        centre."""
         cells = np.argwhere(self.pieces == comp)
         for part in self.parts:
             part_cells = np.argwhere(np.isin(self.pieces, part.components))

@@ -412,10 +412,10 @@ def _thick_turn(
     piece's normal is loosely held (a stapler's lid, 0.38 by 0.21 by 0.15: its plane
     intersections with the target's pieces missed the hinge by 13-25 degrees); a slab's is
     not, and there the surface fit, which also rewards landing on the static body, would
-    trade one hinge's accuracy for another's. A drawer's box is thick
-    too, and a turn searched for it can land it about as well as its slide, a rival the
-    search made up (a real tall cabinet's drawer at the quick profile: a 108-degree turn
-    landing 0.96 of it against the slide's 0.95, and stage 3 then kept the turn)."""
+    trade one hinge's accuracy for another's. A drawer's box is thick too, and a turn
+    searched for it can land it about as well as its slide, a rival the search made up (a
+    real tall cabinet's drawer at the quick profile: a 108-degree turn landing 0.96 of it
+    against the slide's 0.95, and stage 3 then kept the turn)."""
     refined = []
     for _, hinge in turns[:REFINE_STARTS]:
         rot, trans = refine_turn(points, hinge.rot, hinge.trans, float(plane.extents[0]),
