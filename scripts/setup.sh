@@ -43,13 +43,27 @@ command -v "$python" >/dev/null || { echo "setup: $python not found" >&2; exit 1
 # is present the CPU build is enough (PyPI's Linux build adds 4.5 GB of CUDA libraries and
 # triton). It comes from the PyTorch CPU index; when that index is unreachable, PyPI's default
 # build is installed with the other dependencies below. An installed torch is kept.
-if ! "$venv/bin/python" -c "import torch" 2>/dev/null \
-    && ! { command -v nvidia-smi >/dev/null && nvidia-smi -L >/dev/null 2>&1; }; then
-  torch_req=$("$venv/bin/python" -c "import tomllib; print(next(d for d in tomllib.load(open(
-    'pyproject.toml', 'rb'))['project']['dependencies'] if d.startswith('torch')))")
-  "$venv/bin/python" -m pip install -q --timeout 10 --retries 0 \
-      --index-url https://download.pytorch.org/whl/cpu "$torch_req" 2>/dev/null \
-    || echo "setup: the PyTorch CPU index is unreachable; installing PyPI's torch (with CUDA libraries)"
+# GEAR_TORCH overrides the requirement (the tests pin the low end of the range this way).
+if ! "$venv/bin/python" -c "import torch" 2>/dev/null; then
+  # PyPI's torch with its CUDA libraries fills about 7 GB; fail here, with the reason, rather
+  # than halfway through pip with "No space left on device".
+  need_gib=8
+  free_gib=$(df -Pk "$venv" | awk 'NR == 2 { print int($4 / 1048576) }')
+  if [ "$free_gib" -lt "$need_gib" ]; then
+    echo "setup: only ${free_gib} GiB free where $venv lives; installing torch and the other" \
+      "dependencies needs about ${need_gib} GiB (free some space, or set GEAR_VENV to a venv" \
+      "path on a larger disk)" >&2
+    exit 1
+  fi
+  torch_req="${GEAR_TORCH:-$("$venv/bin/python" -c "import tomllib; print(next(d for d in
+    tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']
+    if d.startswith('torch')))")}"
+  if ! { command -v nvidia-smi >/dev/null && nvidia-smi -L >/dev/null 2>&1; }; then
+    "$venv/bin/python" -m pip install -q --timeout 10 --retries 0 \
+        --index-url https://download.pytorch.org/whl/cpu "$torch_req" 2>/dev/null \
+      || echo "setup: the PyTorch CPU index is unreachable; installing PyPI's torch (with CUDA libraries)"
+  fi
+  "$venv/bin/python" -c "import torch" 2>/dev/null || "$venv/bin/python" -m pip install -q "$torch_req"
 fi
 
 # 5. The Rust extension (gear._core) plus the package, editable, with the dev and colmap

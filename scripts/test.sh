@@ -27,9 +27,8 @@ done
 if [ -z "$py312" ]; then
   echo "skipped: no Python 3.12 interpreter on this machine"
 else
-  [ -x .venv-py312/bin/python ] || { "$py312" -m venv .venv-py312 \
-    && .venv-py312/bin/python -m pip install -q "torch==2.10.*"; }
-  GEAR_PYTHON="$py312" GEAR_VENV=.venv-py312 bash scripts/setup.sh >/dev/null
+  GEAR_PYTHON="$py312" GEAR_VENV=.venv-py312 GEAR_TORCH="torch==2.10.*" \
+    bash scripts/setup.sh >/dev/null
   .venv-py312/bin/python -m pytest -q tests/test_install.py tests/test_core.py \
     tests/test_camera.py tests/test_data.py tests/test_data_layouts.py tests/test_splat.py
 fi
