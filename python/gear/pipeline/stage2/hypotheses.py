@@ -241,12 +241,24 @@ def fold_axes(src: Plane, normal: np.ndarray, across: np.ndarray) -> list[np.nda
     return axes
 
 
+def _skew_vector(rot: np.ndarray) -> np.ndarray:
+    """2 sin(angle) times the unit axis of rotation matrix `rot` (from its skew part)."""
+    return np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+
+
 def axis_of(rot: np.ndarray) -> np.ndarray:
     """The unit axis of rotation matrix `rot` (sign arbitrary for a half turn)."""
-    axis = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    axis = _skew_vector(rot)
     if np.linalg.norm(axis) < 1e-9:  # no turn, or a half turn: the eigenvector of R + R^T
         axis = np.linalg.eigh(rot + rot.T)[1][:, -1]
     return axis / np.linalg.norm(axis)
+
+
+def axis_angle_of(rot: np.ndarray) -> tuple[np.ndarray, float]:
+    """(unit axis, angle in radians, signed about that axis) of rotation matrix `rot`."""
+    axis = axis_of(rot)
+    sine = 0.5 * float(axis @ _skew_vector(rot))
+    return axis, float(np.arctan2(sine, (np.trace(rot) - 1) / 2))
 
 
 def edge_hinges(src: Plane, rot: np.ndarray) -> list[RigidMotion]:
@@ -373,10 +385,7 @@ def refine_turn(
     centimetres along its length still lands half on itself, a maximum the search stops at."""
     pts = np.asarray(points, dtype=np.float64)
     sample = pts[:: max(1, len(pts) // REFINE_SAMPLES)]
-    axis = axis_of(rot)
-    sine = 0.5 * float(axis @ np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0],
-                                        rot[1, 0] - rot[0, 1]]))
-    angle = float(np.arctan2(sine, (np.trace(rot) - 1) / 2))
+    axis, angle = axis_angle_of(rot)
     # The pivot on the axis' line nearest the piece's centroid: (I - R) p = t holds for every
     # point of the line (t has no part along the axis for a pure turn).
     pivot = np.linalg.lstsq(np.eye(3) - rot, trans, rcond=None)[0]

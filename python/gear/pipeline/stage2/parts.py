@@ -580,8 +580,10 @@ class _PartSearch:
         cells = np.argwhere(self.pieces == comp)
         for part in self.parts:
             part_cells = np.argwhere(np.isin(self.pieces, part.components))
+            if not _in_line(cells, part_cells, part.motion):
+                continue
             part_points = self.canon[np.isin(self.canon_labels, part.components)]
-            if len(part_points) < 4 or not _in_line(cells, part_cells, part.motion):
+            if len(part_points) < 4:
                 continue
             extra, joint = one_motion(self.split, [(part_points, part.motion), (points, own)])
             if extra > MERGE_COST or not all(

@@ -456,9 +456,47 @@ def init_motion(
     canon_plane = fit_plane(points)
     # The best slide, once: the swept turns must beat it, and it is a candidate itself.
     shift = split.best_slide(src_mask)
-    candidates: list[Hypothesis] = []
-    fold_offsets = split.grid.voxel_size * np.arange(-2.0, 2.5, 0.5)
     floor = max(MIN_PART_VOXELS, 0.2 * (of_size or len(src_cells)))
+    hinges = _trusted_turns(split, src_mask, points, canon_plane, floor, shift, sweep)
+    slide = None if shift is None else split.score(src_cells, "slide", np.eye(3), shift)
+    candidates, spare_hinge = _best_turns(split, src_cells, points, canon_plane, hinges,
+                                          slide, sweep)
+    if slide is not None:
+        candidates.append(slide)
+    trusted = [h for h in candidates if h.trusted]
+    if not trusted:
+        return [IDENTITY]
+    # Hypotheses that explain enough change to claim a part outrank those that merely may
+    # initialise one: a door shifted sideways onto its static neighbour lands as well as the
+    # door turned, but explains little of what changed.
+    claiming = [h for h in trusted if h.explained >= DETECT_OVERLAP] or trusted
+    # max() keeps the first of equal scores: hinges come first.
+    best = max(claiming, key=lambda h: h.landed)
+    others = [
+        h for h in trusted
+        if h.kind != best.kind and (h.fold or h.landed >= best.landed - TIE_MARGIN)
+    ]
+    chosen = [best]
+    if others:
+        runner = max(others, key=lambda h: h.landed)
+        if runner.landed >= best.landed - TIE_MARGIN:
+            best, runner = near_tie_order(best, runner)
+        chosen = [best, runner]
+    if spare_hinge is not None and any(h.kind == "hinge" for h in chosen):
+        chosen.append(spare_hinge)
+    return chosen
+
+
+def _trusted_turns(split: VoxelSplit, src_mask: np.ndarray, points: np.ndarray,
+                   canon_plane: Plane, floor: float, shift: np.ndarray | None,
+                   sweep: bool) -> list[Hypothesis]:
+    """The trusted turns among init_motion's candidates: plane intersections with every planar
+    target piece of at least `floor` cells (and rods' turns onto rods), each also about both
+    edges of the slab; a flat piece's turns about its normal and a blob's swept turns, both
+    unless `sweep` is False."""
+    src_cells = np.argwhere(src_mask)
+    fold_offsets = split.grid.voxel_size * np.arange(-2.0, 2.5, 0.5)
+    candidates: list[Hypothesis] = []
     if canon_plane.is_plane or canon_plane.is_rod:
         for index, (size, _) in enumerate(split.pieces):
             if size < floor:
@@ -486,56 +524,34 @@ def init_motion(
     elif sweep:
         blobs = blob_hinges(split, src_mask, points, floor, shift)
         candidates += [split.score(src_cells, "hinge", r, t) for r, t in blobs]
-    hinges = [h for h in candidates if h.trusted]
-    candidates = []
-    # Per family (turns, half-turn folds), the hinge whose moved centres lie closest to the
-    # target's (which side of the slab the hinge is on, which of the angles).
+    return [h for h in candidates if h.trusted]
+
+
+def _best_turns(split: VoxelSplit, src_cells: np.ndarray, points: np.ndarray,
+                canon_plane: Plane, hinges: list[Hypothesis], slide: Hypothesis | None,
+                sweep: bool) -> tuple[list[Hypothesis], Hypothesis | None]:
+    """([the hinge of `hinges` that goes first] or [], the other family's best or None). Per
+    family (turns, half-turn folds), the hinge whose moved centres lie closest to the target's
+    (which side of the slab the hinge is on, which of the angles); a thick plane's best turns
+    refined (_thick_turn) unless `sweep` is False."""
     fits = [split.surface_fit(points, h.rot, h.trans) for h in hinges]
     best_of = {}
     for family in (False, True):
         members = [(f, h) for f, h in zip(fits, hinges, strict=True) if h.fold == family]
         if members:
-            hinge = max(members, key=lambda m: m[0])[1]
-            best_of[family] = (split.surface_fit(points, hinge.rot, hinge.trans), hinge)
-    slide = None if shift is None else split.score(src_cells, "slide", np.eye(3), shift)
+            best_of[family] = max(members, key=lambda m: m[0])
     if False in best_of and sweep and canon_plane.is_plane \
             and not (canon_plane.is_flat or canon_plane.is_rod):
         turns = sorted(((f, h) for f, h in zip(fits, hinges, strict=True) if not h.fold),
                        key=lambda m: -m[0])
         best_of[False] = _thick_turn(split, src_cells, points, canon_plane, turns,
                                      0.0 if slide is None else slide.landed)
-    spare_hinge = None
-    if best_of:
-        # A turn goes first unless a fold lands its centres clearly closer: a symmetric piece
-        # (a lever, a knob) also lands on its turned self when flipped by a half turn about
-        # the bisector, and the fold's extra pivot offsets fit noise. The other family's
-        # hinge stays a candidate for stage 3's images.
-        order = sorted(best_of, key=lambda fam: best_of[fam][0] - (FOLD_MARGIN if fam else 0),
-                       reverse=True)
-        candidates.append(best_of[order[0]][1])
-        if len(order) > 1:
-            spare_hinge = best_of[order[1]][1]
-    if slide is not None:
-        candidates.append(slide)
-    trusted = [h for h in candidates if h.trusted]
-    if not trusted:
-        return [IDENTITY]
-    # Hypotheses that explain enough change to claim a part outrank those that merely may
-    # initialise one: a door shifted sideways onto its static neighbour lands as well as the
-    # door turned, but explains little of what changed.
-    claiming = [h for h in trusted if h.explained >= DETECT_OVERLAP] or trusted
-    # max() keeps the first of equal scores: hinges come first.
-    best = max(claiming, key=lambda h: h.landed)
-    others = [
-        h for h in trusted
-        if h.kind != best.kind and (h.fold or h.landed >= best.landed - TIE_MARGIN)
-    ]
-    chosen = [best]
-    if others:
-        runner = max(others, key=lambda h: h.landed)
-        if runner.landed >= best.landed - TIE_MARGIN:
-            best, runner = near_tie_order(best, runner)
-        chosen = [best, runner]
-    if spare_hinge is not None and any(h.kind == "hinge" for h in chosen):
-        chosen.append(spare_hinge)
-    return chosen
+    if not best_of:
+        return [], None
+    # A turn goes first unless a fold lands its centres clearly closer: a symmetric piece (a
+    # lever, a knob) also lands on its turned self when flipped by a half turn about the
+    # bisector, and the fold's extra pivot offsets fit noise. The other family's hinge stays
+    # a candidate for stage 3's images.
+    order = sorted(best_of, key=lambda fam: best_of[fam][0] - (FOLD_MARGIN if fam else 0),
+                   reverse=True)
+    return [best_of[order[0]][1]], (best_of[order[1]][1] if len(order) > 1 else None)
