@@ -61,8 +61,8 @@ def test_a_thick_lids_hinge_is_searched_from_the_plane_intersections(tilt_deg, a
 
 
 def test_refine_turn_stays_within_its_tilt_bound():
-    """Pulled towards a turn about an axis square to its own (beyond REFINE_TILT_DEG), the
-    search leans its axis to the bound and no further."""
+    """Pulled towards a turn about an axis square to its own (beyond the thick-piece search's
+    30-degree tilt bound), the search leans its axis to the bound and no further."""
     rng = np.random.default_rng(3)
     piece = box_surface([0, 0, 0], [0.4, 0.2, 0.15], 4000, rng)
     far_rot, far_trans = rotation_about_line(np.array([1.0, 0, 0]), HINGE_PIVOT, 0.8)

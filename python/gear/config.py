@@ -64,6 +64,11 @@ class TrainConfig:
     # the body's frame is tried along it, kept unless the images see it worse (docs/method.md,
     # "Axes square to the body")
     square_axes: bool = True
+    # [beyond] at the end of stage 3, after the squaring, each hinge searched locally for the
+    # turn that lands its part on the target state's stage-1 model, kept when it lands clearly
+    # closer and the images do not see it worse (docs/method.md, "Hinges landed on the
+    # target's reconstruction")
+    land_hinges: bool = True
     # [beyond] with K estimated, a hinged part tall along its axis enters stage 3 cut in two
     # (doors stacked on one hinge line); the merge of parts read twice joins the halves again
     # when one motion explains both (docs/method.md, "Doors stacked on one hinge line")

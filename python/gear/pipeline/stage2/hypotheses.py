@@ -38,15 +38,29 @@ SWEEP_SAMPLES = 100
 SWEEP_SETTLE = 10
 SWEEP_KEEP = 3
 SWEEP_TARGETS = 3  # the largest target pieces a blob's turns start on
-# Local search of a thick piece's hinge (refine_turn): how far its axis may tilt, its pivot
-# move (a fraction of the piece's largest extent) and its angle change, the centres sampled,
-# and the evaluations allowed.
-REFINE_TILT_DEG = 30.0
-REFINE_PIVOT = 0.5
-REFINE_ANGLE_DEG = 20.0
+# A local search of a turn (refine_turn): the centres sampled and the evaluations allowed
+# per width.
 REFINE_SAMPLES = 1000
 REFINE_EVALUATIONS = 600
-REFINE_WIDTHS = (1 / 8, 1 / 32)
+
+
+@dataclass(frozen=True)
+class TurnSearch:
+    """The bounds of refine_turn: how far the axis may tilt (degrees, a cone), the pivot move
+    across the axis (a fraction of the extent given) and the angle change (degrees), and the
+    widths of the surface fit, coarse to fine (fractions of the extent; None: the fit's own)."""
+
+    tilt_deg: float
+    pivot: float
+    angle_deg: float
+    widths: tuple[float | None, ...]
+
+
+# A thick piece's hinge in stage 2, from a plane intersection that can miss it by tens of
+# degrees (extent: the piece's largest). At the fit's own width alone, a lid shifted by a few
+# centimetres along its length still lands half on itself, a maximum the search stops at.
+THICK_PIECE_SEARCH = TurnSearch(tilt_deg=30.0, pivot=0.5, angle_deg=20.0,
+                                widths=(1 / 8, 1 / 32, None))
 
 
 @dataclass
@@ -371,28 +385,22 @@ def swept_hinges(
 
 def refine_turn(
     points: np.ndarray, rot: np.ndarray, trans: np.ndarray, extent: float,
-    fit: Callable[..., float],
+    fit: Callable[..., float], search: TurnSearch = THICK_PIECE_SEARCH,
 ) -> RigidMotion:
     """The turn (R, t) of `points` refined to a maximum of `fit(points, R, t, width=w)`
-    (higher is better; VoxelSplit.surface_fit): its axis tilted by up to REFINE_TILT_DEG, its
-    pivot moved across the axis by up to REFINE_PIVOT times `extent` and its angle changed by
-    up to REFINE_ANGLE_DEG (Powell's method, on a sample of the centres; no slide along the
-    axis is added). For a piece whose plane leaves its normal loose (a thick lid): the
-    intersection of two such planes can miss the hinge by tens of degrees, while the surface
-    fit, smooth in the motion, climbs from there to the turn that lays the piece on the
-    target's centres. Coarse to fine: first with widths of REFINE_WIDTHS times `extent`, then
-    with the fit's own (a voxel or so). At that width alone, a lid shifted by a few
-    centimetres along its length still lands half on itself, a maximum the search stops at."""
+    (higher is better; surface_fit): its axis tilted, its pivot moved across the axis and its
+    angle changed within the bounds of `search` (Powell's method, on a sample of the centres;
+    no slide along the axis is added), coarse to fine over the search's widths. For a piece
+    whose plane leaves its normal loose (a thick lid), the intersection of two such planes can
+    miss the hinge by tens of degrees, while the surface fit, smooth in the motion, climbs from
+    there to the turn that lays the piece on the target's centres."""
     pts = np.asarray(points, dtype=np.float64)
     sample = pts[:: max(1, len(pts) // REFINE_SAMPLES)]
     axis, angle = axis_angle_of(rot)
-    # The pivot on the axis' line nearest the piece's centroid: (I - R) p = t holds for every
-    # point of the line (t has no part along the axis for a pure turn).
-    pivot = np.linalg.lstsq(np.eye(3) - rot, trans, rcond=None)[0]
-    pivot = pivot + axis * float(axis @ (pts.mean(axis=0) - pivot))
+    pivot = pivot_near(rot, trans, pts.mean(axis=0))
     across = np.linalg.svd(axis[None, :])[2][1:]  # two unit directions square to the axis
     scale = max(extent, 1e-12)
-    tilt = np.tan(np.deg2rad(REFINE_TILT_DEG))
+    tilt = np.tan(np.deg2rad(search.tilt_deg))
 
     def motion(x: np.ndarray) -> RigidMotion:
         # The tilt's two components are bounded together (a cone, not a square's corners).
@@ -401,11 +409,30 @@ def refine_turn(
         return rotation_about_line(tilted, pivot + scale * (x[2] * across[0] + x[3] * across[1]),
                                    angle + x[4])
 
-    turn = np.deg2rad(REFINE_ANGLE_DEG)
-    bounds = [(-tilt, tilt)] * 2 + [(-REFINE_PIVOT, REFINE_PIVOT)] * 2 + [(-turn, turn)]
+    turn = np.deg2rad(search.angle_deg)
+    bounds = [(-tilt, tilt)] * 2 + [(-search.pivot, search.pivot)] * 2 + [(-turn, turn)]
     x = np.zeros(5)
-    for width in [scale * f for f in REFINE_WIDTHS] + [None]:
+    for width in [None if f is None else scale * f for f in search.widths]:
         x = minimize(lambda x, w=width: -fit(sample, *motion(x), width=w), x, method="Powell",
                      bounds=bounds, options={"maxfev": REFINE_EVALUATIONS, "xtol": 1e-3,
                                              "ftol": 1e-4}).x
     return motion(x)
+
+
+def pivot_near(rot: np.ndarray, trans: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """The point of the axis line of the turn x -> R x + t nearest `point`: (I - R) p = t
+    holds for every point of the line (t has no part along the axis for a pure turn; the
+    least-squares solution drops one that has)."""
+    axis = axis_of(rot)
+    pivot = np.linalg.lstsq(np.eye(3) - rot, trans, rcond=None)[0]
+    return pivot + axis * float(axis @ (point - pivot))
+
+
+def surface_fit(tree: NearestTree, points: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+                width: float) -> float:
+    """How closely `points` moved by p -> R p + t lie on the points of `tree`: the mean of
+    exp(-(d / width)^2) over their distances d to the nearest. Unlike a count of landed cells
+    it varies smoothly with the motion."""
+    moved = points @ np.asarray(rot).T + np.asarray(trans)
+    dist, _ = tree.query(moved, k=1)
+    return float(np.exp(-((dist / width) ** 2)).mean())

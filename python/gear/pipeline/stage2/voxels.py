@@ -29,6 +29,7 @@ from gear.pipeline.stage2.hypotheses import (
     hinge_candidates,
     refine_turn,
     rod_hinges,
+    surface_fit,
     swept_hinges,
 )
 
@@ -206,10 +207,8 @@ class VoxelSplit:
         voxel, and a long run packs its centres 20-50 times closer than that, where only exact
         coincidences would count (a blade turned by the right angle scored 0.02, as low as any
         wrong turn)."""
-        moved = points @ np.asarray(rot).T + np.asarray(trans)
-        dist, _ = self.target_tree.query(moved, k=1)
-        width = width or max(2 * self.spacing, self.grid.voxel_size)
-        return float(np.exp(-((dist / width) ** 2)).mean())
+        return surface_fit(self.target_tree, points, rot, trans,
+                           width or max(2 * self.spacing, self.grid.voxel_size))
 
     def best_slide(self, src_mask: np.ndarray) -> np.ndarray | None:
         """The whole-voxel translation landing most of `src_mask` on target matter among those

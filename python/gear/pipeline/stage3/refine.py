@@ -18,6 +18,7 @@ from gear.pipeline.stage2 import Stage2Result
 from gear.pipeline.stage3.estep import gaussian_step
 from gear.pipeline.stage3.joint_types import classify
 from gear.pipeline.stage3.joints import object_center, start_to_end_joints
+from gear.pipeline.stage3.landing import land_hinges
 from gear.pipeline.stage3.merge import merge_parts
 from gear.pipeline.stage3.mstep import motion_step
 from gear.pipeline.stage3.rods import untwist_rods
@@ -87,6 +88,12 @@ class Refine(RefineState):
         """square_axes.square_axes, when the config asks for it, recorded as an event."""
         if self.config.square_axes:
             self.events.append({"event": "axis_square", "parts": square_axes(self)})
+
+    def land_hinges(self, target: Gaussians) -> None:
+        """landing.land_hinges on the target state's stage-1 model `target`, when the config
+        asks for it, recorded as an event."""
+        if self.config.land_hinges:
+            self.events.append({"event": "hinge_landing", "parts": land_hinges(self, target)})
 
     def result(self) -> Stage3Result:
         return Stage3Result(self.gaussians, self.motion, self.canonical)
@@ -186,6 +193,7 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
     stage.merge_parts_read_twice(halves=stage.halves)
     stage.untwist_rods()
     stage.square_axes()
+    stage.land_hinges(models[coarse.target])
     runner.write_events(stage, when="end")
     runner.timed(stage.name, time.perf_counter() - started)
     result = stage.result()

@@ -124,12 +124,12 @@ def square_axes(state: RefineState) -> list[dict]:
         if len(points) < MIN_CENTRES:
             continue
         prismatic = bool(motion.prismatic[k])
-        squared = squared_motion(points, *_part_motion(motion, k), prismatic, frame)
+        squared = squared_motion(points, *part_motion(motion, k), prismatic, frame)
         if squared is None:
             continue
         quat, trans, moved = squared
         quat, trans = _settled(state, motion, k, quat, trans, prismatic)
-        candidate = _with_part(motion, k, (quat, trans), prismatic)
+        candidate = with_part(motion, k, (quat, trans), prismatic)
         if current is None:
             current = image_loss(state, motion)
         squared_loss = image_loss(state, candidate)
@@ -198,14 +198,14 @@ def _settled(state: RefineState, motion: PartMotion, k: int, quat: torch.Tensor,
     return settled
 
 
-def _part_motion(motion: PartMotion, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+def part_motion(motion: PartMotion, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(unit quaternion, translation) of part k of `motion`, in float64."""
     qr, qd = motion.motion()
     quat, trans = dq_to_rt(qr[k], qd[k])
     return quat.detach().to(torch.float64), trans.detach().to(torch.float64)
 
 
-def _with_part(motion: PartMotion, k: int, rt: tuple[torch.Tensor, torch.Tensor],
+def with_part(motion: PartMotion, k: int, rt: tuple[torch.Tensor, torch.Tensor],
                prismatic: bool) -> PartMotion:
     """A copy of `motion` with part k moved by rt = (quaternion, translation)."""
     out = copy.deepcopy(motion)

@@ -1,0 +1,138 @@
+"""Hinges landed on the target's reconstruction (gear.pipeline.stage3.landing): a door whose
+trained turn stopped short about a shifted pivot is moved to the turn that lays it on the
+target state's model, and nothing moves where that model agrees with the motion already."""
+
+import math
+
+import numpy as np
+import torch
+
+from gear.articulation import PartMotion
+from gear.config import make_config
+from gear.kinematics import dq_from_rt, quat_from_axis_angle, quat_to_matrix
+from gear.pipeline.stage3 import Refine
+from gear.pipeline.stage3.landing import LANDING_SEARCH
+from stage3_scenes import OFFSET, grid_gaussians, views_of
+
+DTYPE = torch.float64
+UP = np.array([0.0, 0.0, 1.0])
+PIVOT = np.array([-0.4, -0.27, 0.0]) + OFFSET  # the door's left edge, in the world
+OPEN_DEG = 60.0
+
+
+def body() -> torch.Tensor:
+    """Centres on five faces of a box 0.8 x 0.5 x 0.6 open at the front (-y)."""
+    half = np.array([0.4, 0.25, 0.3])
+    grid = np.linspace(-0.9, 0.9, 7)
+    centres = []
+    for axis in range(3):
+        for side in (-1.0, 1.0):
+            if axis == 1 and side < 0:
+                continue
+            u, v = [a for a in range(3) if a != axis]
+            for a in grid:
+                for b in grid:
+                    local = np.zeros(3)
+                    local[axis], local[u], local[v] = side * half[axis], a * half[u], b * half[v]
+                    centres.append(local)
+    return torch.as_tensor(np.array(centres), dtype=torch.float32)
+
+
+def door() -> torch.Tensor:
+    """A plate of 1500 centres 0.8 x 0.02 x 0.6 closing the box's front."""
+    rng = np.random.default_rng(5)
+    local = rng.uniform(0, 1, size=(1500, 3)) * [0.8, 0.02, 0.6] + [-0.4, -0.28, -0.3]
+    return torch.as_tensor(local, dtype=torch.float32)
+
+
+def turn(degrees: float, pivot: np.ndarray, axis: np.ndarray = UP) -> tuple[torch.Tensor, ...]:
+    """(quaternion, translation) of a turn by `degrees` about the line through `pivot`."""
+    quat = quat_from_axis_angle(torch.as_tensor(axis / np.linalg.norm(axis), dtype=DTYPE),
+                                torch.tensor(math.radians(degrees), dtype=DTYPE))
+    pivot = torch.as_tensor(pivot, dtype=DTYPE)
+    return quat, pivot - quat_to_matrix(quat) @ pivot
+
+
+def motion_of(rt: tuple[torch.Tensor, ...], prismatic: bool = False) -> PartMotion:
+    motion = PartMotion(2)
+    motion.set_part(1, *dq_from_rt(*rt), prismatic=prismatic)
+    return motion
+
+
+def door_stage(trained: tuple[torch.Tensor, ...], landed_on: tuple[torch.Tensor, ...],
+               prismatic: bool = False):
+    """(a Refine of the box and its door trained to `trained`, its target images and the
+    target state's model made with the door moved by the truth's turn; that model with the
+    door moved by `landed_on`)."""
+    g = grid_gaussians([(body(), 0), (door(), 1)])
+    views = views_of(g, motion_of(turn(OPEN_DEG, PIVOT)), n=4)
+    stage = Refine(g, motion_of(trained, prismatic), None, views, views, make_config("quick"),
+                   seed=0)
+    quat, trans = landed_on
+    world = door().double() + torch.as_tensor(OFFSET)
+    moved = (world @ quat_to_matrix(quat).T + trans - torch.as_tensor(OFFSET)).float()
+    return stage, grid_gaussians([(body(), 0), (moved, 1)])
+
+
+def hinge_of(stage: Refine) -> dict:
+    (joint,) = stage.motion.joints(torch.as_tensor(OFFSET))
+    return joint
+
+
+def line_distance(joint: dict) -> float:
+    """How far the joint's axis line passes from the true hinge line (both nearly along z)."""
+    origin = np.asarray(joint["origin"])
+    axis = np.asarray(joint["axis"]) / np.linalg.norm(joint["axis"])
+    at_pivot_height = origin + axis * (PIVOT[2] - origin[2]) / axis[2]
+    return float(np.linalg.norm((at_pivot_height - PIVOT)[:2]))
+
+
+def test_a_door_stopped_short_about_a_shifted_pivot_lands_on_the_target():
+    short = turn(OPEN_DEG - 5.0, PIVOT + np.array([0.03, -0.02, 0.0]))
+    stage, target = door_stage(short, landed_on=turn(OPEN_DEG, PIVOT))
+    before = hinge_of(stage)
+    assert abs(abs(before["angle_deg"]) - OPEN_DEG) > 4.9 and line_distance(before) > 0.03
+    stage.land_hinges(target)
+    (event,) = stage.events
+    (record,) = event["parts"]
+    assert event["event"] == "hinge_landing" and record["kept"], record
+    assert record["landed_fit"] > 2 * record["fit"]
+    after = hinge_of(stage)
+    assert abs(abs(after["angle_deg"]) - OPEN_DEG) < 0.3, after
+    assert line_distance(after) < 0.01, after
+    axis = np.asarray(after["axis"]) / np.linalg.norm(after["axis"])
+    assert math.degrees(math.acos(min(1.0, abs(axis @ UP)))) < 0.5
+    assert torch.isfinite(stage.motion.qr).all() and torch.isfinite(stage.motion.qd).all()
+
+
+def test_a_hinge_the_target_agrees_with_is_left_bit_for_bit():
+    trained = turn(OPEN_DEG - 2.0, PIVOT + np.array([0.01, 0.0, 0.0]))
+    stage, target = door_stage(trained, landed_on=trained)
+    qr, qd = stage.motion.qr.detach().clone(), stage.motion.qd.detach().clone()
+    stage.land_hinges(target)
+    (record,) = stage.events[0]["parts"]
+    assert not record["kept"], record
+    assert torch.equal(stage.motion.qr.detach(), qr) and torch.equal(stage.motion.qd.detach(), qd)
+
+
+def test_the_search_stays_within_its_bounds():
+    """A target turned far beyond the angle bound pulls the door to the bound, no further."""
+    stage, target = door_stage(turn(OPEN_DEG - 30.0, PIVOT), landed_on=turn(OPEN_DEG, PIVOT))
+    stage.land_hinges(target)
+    (record,) = stage.events[0]["parts"]
+    assert record["angle_moved_deg"] <= LANDING_SEARCH.angle_deg + 1e-6
+    assert record["axis_moved_deg"] <= LANDING_SEARCH.tilt_deg + 1e-6
+
+
+def test_slides_and_a_config_that_turns_it_off_leave_the_motion():
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=DTYPE)
+    slide = (identity, torch.tensor([0.0, -0.2, 0.0], dtype=DTYPE))
+    stage, target = door_stage(slide, landed_on=turn(OPEN_DEG, PIVOT), prismatic=True)
+    stage.land_hinges(target)
+    assert stage.events[0]["parts"] == []
+    stage, target = door_stage(turn(OPEN_DEG - 5.0, PIVOT), landed_on=turn(OPEN_DEG, PIVOT))
+    stage.config.land_hinges = False
+    qr, qd = stage.motion.qr.detach().clone(), stage.motion.qd.detach().clone()
+    stage.land_hinges(target)
+    assert stage.events == []
+    assert torch.equal(stage.motion.qr.detach(), qr) and torch.equal(stage.motion.qd.detach(), qd)
