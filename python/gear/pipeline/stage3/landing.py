@@ -22,12 +22,14 @@ from gear.pipeline.stage2.frame import MIN_CENTRES
 from gear.pipeline.stage2.hypotheses import (
     TurnSearch,
     axis_angle_of,
+    fit_plane,
     pivot_near,
     refine_turn,
     surface_fit,
 )
 from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY
 from gear.pipeline.stage3.joint_types import image_loss
+from gear.pipeline.stage3.rods import round_rod
 from gear.pipeline.stage3.shared import RefineState
 from gear.pipeline.stage3.square_axes import SQUARE_MARGIN, part_motion, with_part
 from gear.splats import Gaussians
@@ -54,8 +56,8 @@ def land_hinges(state: RefineState, target: Gaussians) -> list[dict]:
     """Refines every hinge of `state` by landing its part's opaque canonical centres on the
     opaque centres of `target` (the target state's stage-1 model), and keeps the landed turn
     where the fit gains MIN_LANDING_GAIN, the search stopped short of its bounds and the image
-    loss stays within SQUARE_MARGIN of the current one's. Slides are left as they are (their
-    travel is what the images see best).
+    loss stays within SQUARE_MARGIN of the current one's. Slides and round rods are left as
+    they are (a slide's travel is what the images see best; a rod keeps its swing).
     Returns a record per hinge tried: the fits, how far the axis, pivot and angle moved, both
     losses (when scored) and whether it was kept."""
     g, motion = state.gaussians, state.motion
@@ -82,7 +84,10 @@ def land_hinges(state: RefineState, target: Gaussians) -> list[dict]:
     current = None  # the image loss of `motion`, once a hinge is scored
     for k in state.live_parts():
         points = means[(ids == k) & opaque].numpy()
-        if bool(motion.prismatic[k]) or len(points) < MIN_CENTRES:
+        # A round rod's twist about its length moves its surface as little as the images
+        # see of it: it keeps the swing untwist_rods gave it.
+        if bool(motion.prismatic[k]) or len(points) < MIN_CENTRES \
+                or round_rod(fit_plane(points)):
             continue
         quat, trans = part_motion(motion, k)
         rot, trans = quat_to_matrix(quat).numpy(), trans.numpy()

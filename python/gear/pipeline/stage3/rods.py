@@ -9,6 +9,7 @@ apart (docs/method.md, "Rods")."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from gear.kinematics import (
@@ -19,7 +20,7 @@ from gear.kinematics import (
     quat_from_matrix,
     quat_to_matrix,
 )
-from gear.pipeline.stage2.hypotheses import fit_plane
+from gear.pipeline.stage2.hypotheses import Plane, fit_plane
 from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY
 from gear.pipeline.stage3.shared import RefineState
 
@@ -62,6 +63,16 @@ def untwist_rods(state: RefineState) -> list[dict]:
     return changed
 
 
+def round_rod(shape: Plane) -> bool:
+    """Whether the principal extents of `shape` (fit_plane of a part's centres) make it a
+    round rod: ROD_ASPECT times longer than thick, its cross-section within
+    MAX_CROSS_SECTION_ASPECT of round."""
+    across = np.sort(shape.extents[1:])
+    # Written so that a degenerate cluster (every extent 0) is no rod.
+    thin = shape.extents[0] > ROD_ASPECT * across[1]
+    return bool(thin and across[1] <= MAX_CROSS_SECTION_ASPECT * across[0])
+
+
 def rod_swing(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor,
               ) -> tuple[torch.Tensor, torch.Tensor, dict] | None:
     """(unit quaternion, translation, record) of the swing of the rod `points` [N,3] under
@@ -69,11 +80,7 @@ def rod_swing(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor,
     is mostly a twist about their length."""
     shape = fit_plane(points.numpy())
     extents = torch.from_numpy(shape.extents).to(points.dtype)  # along shape.axes' rows
-    across = extents[1:].sort().values
-    # Written so that a degenerate cluster (every extent 0) is no rod.
-    thin = extents[0] > ROD_ASPECT * across[1]
-    round_ = across[1] <= MAX_CROSS_SECTION_ASPECT * across[0]
-    if not (thin and round_):
+    if not round_rod(shape):
         return None
     centre = torch.from_numpy(shape.centroid).to(points.dtype)
     length = torch.from_numpy(shape.axes[0]).to(points.dtype)
