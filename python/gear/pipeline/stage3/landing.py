@@ -35,11 +35,12 @@ from gear.pipeline.stage3.square_axes import SQUARE_MARGIN, part_motion, with_pa
 from gear.splats import Gaussians
 
 # The local search, in fractions of the object's extent (the diagonal of its centres' box):
-# real sink-cabinet doors that stage 3 left 3.8 and 5.4 degrees short, their pivots 0.05 and
-# 0.08 off (of an extent of 2.3), came within 0.1-0.5 degrees and 0.001-0.06 with these
-# bounds, and a stapler's lid, squared onto a base frame 2.3 degrees off, to 0.8 degrees. The
-# finest width is about a voxel of stage 2's grid: the two states' models agree to about that.
-# Every width is at least twice the target's median centre spacing.
+# real sink-cabinet doors that stage 3 left 3.6 and 5.4 degrees short, their hinge lines 0.05
+# and 0.08 off (of an extent of 2.3), came within 0.4 and 0.8 degrees of the true angles with
+# these bounds (the second line within 0.009, the first 0.075), and a stapler's lid, squared
+# onto a base frame 2.3 degrees off, within 0.8 degrees. The finest width is about a voxel of
+# stage 2's grid: the two states' models agree to about that. Every width is at least twice
+# the target's median centre spacing.
 LANDING_SEARCH = TurnSearch(tilt_deg=5.0, pivot=1 / 15, angle_deg=10.0,
                             widths=(1 / 50, 1 / 100, 1 / 200))
 # The landed turn must lay the part's centres at least this much closer (relative gain of the
@@ -97,7 +98,8 @@ def land_hinges(state: RefineState, target: Gaussians) -> list[dict]:
                   **_moved((rot, trans), (landed_rot, landed_trans), points.mean(axis=0)),
                   "kept": False}
         records.append(record)
-        if after < before * (1 + MIN_LANDING_GAIN) or _at_bounds(record):
+        finite = bool(np.isfinite(landed_rot).all() and np.isfinite(landed_trans).all())
+        if not finite or after < before * (1 + MIN_LANDING_GAIN) or _at_bounds(record):
             continue
         landed = (quat_from_matrix(torch.as_tensor(landed_rot)), torch.as_tensor(landed_trans))
         if current is None:
