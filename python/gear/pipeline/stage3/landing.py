@@ -93,13 +93,14 @@ def land_hinges(state: RefineState, target: Gaussians) -> list[dict]:
         quat, trans = part_motion(motion, k)
         rot, trans = quat_to_matrix(quat).numpy(), trans.numpy()
         landed_rot, landed_trans = refine_turn(points, rot, trans, extent, fit, LANDING_SEARCH)
+        if not (np.isfinite(landed_rot).all() and np.isfinite(landed_trans).all()):
+            continue
         before, after = fit(points, rot, trans), fit(points, landed_rot, landed_trans)
         record = {"part": k, "fit": round(before, 4), "landed_fit": round(after, 4),
                   **_moved((rot, trans), (landed_rot, landed_trans), points.mean(axis=0)),
                   "kept": False}
         records.append(record)
-        finite = bool(np.isfinite(landed_rot).all() and np.isfinite(landed_trans).all())
-        if not finite or after < before * (1 + MIN_LANDING_GAIN) or _at_bounds(record):
+        if after < before * (1 + MIN_LANDING_GAIN) or _at_bounds(record):
             continue
         landed = (quat_from_matrix(torch.as_tensor(landed_rot)), torch.as_tensor(landed_trans))
         if current is None:
