@@ -5,6 +5,7 @@ that grid (docs/method.md, "Stage 2")."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
@@ -136,6 +137,12 @@ class VoxelSplit:
     _piece_planes: dict[int, Plane] = field(default_factory=dict, repr=False)
     _dominant_planes: dict[int, Plane | None] = field(default_factory=dict, repr=False)
 
+    @cached_property
+    def dyn_count(self) -> int:
+        """How many target dynamic cells there are (every hypothesis scored divides by it: a
+        sum over the whole grid, once)."""
+        return int(self.dyn_target.sum())
+
     def piece_plane(self, index: int) -> Plane:
         """The least-squares plane (fit_plane) of target piece `index`'s centres."""
         if index not in self._piece_planes:
@@ -170,7 +177,7 @@ class VoxelSplit:
         # records, several times slower).
         hit_cells = np.unique(np.ravel_multi_index(hit.T, self.grid.shape))
         explained = len(hit_cells) / max(
-            1, min(len(src_cells), int(self.dyn_target.sum()))
+            1, min(len(src_cells), self.dyn_count)
         )
         return Hypothesis(kind, rot, trans, float(landed.sum()) / len(src_cells), explained)
 
@@ -217,7 +224,7 @@ class VoxelSplit:
         landed, offset = correlate(self.occ_target, src_mask)
         exact, _ = correlate(self.exact_target, src_mask)
         explained, _ = correlate(self.dyn_target, src_mask)
-        need = MIN_OVERLAP * min(int(src_mask.sum()), int(self.dyn_target.sum()))
+        need = MIN_OVERLAP * min(int(src_mask.sum()), self.dyn_count)
         # Exact landings break ties within the one-voxel tolerance.
         rank = np.where(explained >= max(need, 1), landed + exact, -1.0)
         top = rank.max()
