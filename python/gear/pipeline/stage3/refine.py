@@ -89,10 +89,10 @@ class Refine(RefineState):
         if self.config.square_axes:
             self.events.append({"event": "axis_square", "parts": square_axes(self)})
 
-    def land_hinges(self, target: Gaussians) -> None:
+    def land_hinges(self, target: Gaussians | None) -> None:
         """landing.land_hinges on the target state's stage-1 model `target`, when the config
-        asks for it, recorded as an event."""
-        if self.config.land_hinges:
+        asks for it and there is one, recorded as an event."""
+        if self.config.land_hinges and target is not None:
             self.events.append({"event": "hinge_landing", "parts": land_hinges(self, target)})
 
     def result(self) -> Stage3Result:
@@ -170,8 +170,9 @@ def _refine(g: Gaussians, frozen: Gaussians | None, coarse: Stage2Result,
 def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
                  views: dict[str, Sequence[TrainView]], config: TrainConfig, runner: Runner,
                  resume: dict | None) -> Stage3Result | None:
-    """Stage 3 from stage 2's parts and the canonical stage-1 model, or continued from
-    `resume`; None when stage 2 found a single (static) part."""
+    """Stage 3 from stage 2's parts and the canonical stage-1 model (the target state's, when
+    `models` holds it, lands the hinges at the end), or continued from `resume`; None when
+    stage 2 found a single (static) part."""
     c = config
     if coarse.num_parts == 1:
         runner.log.say("no motion detected between the two states: one static part")
@@ -193,7 +194,7 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
     stage.merge_parts_read_twice(halves=stage.halves)
     stage.untwist_rods()
     stage.square_axes()
-    stage.land_hinges(models[coarse.target])
+    stage.land_hinges(models.get(coarse.target))
     runner.write_events(stage, when="end")
     runner.timed(stage.name, time.perf_counter() - started)
     result = stage.result()
