@@ -8,7 +8,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -21,6 +21,7 @@ from gear.pipeline.stage2.voxels import Scale
 from gear.pipeline.stage3.joint_types import image_loss
 from gear.pipeline.stage3.joints import object_center, object_radius, solid_means
 from gear.pipeline.stage3.shared import RefineState
+from gear.pipeline.stage3.square_axes import part_motion
 from gear.splats import Gaussians
 
 # A part merges when another motion costs it at most this share of what its own motion gains
@@ -71,12 +72,14 @@ FORGET_LOGIT = 20.0
 class Merge:
     """Part `part` joined part `into` (0: the static part). `gain`: how much lower the image
     loss is with the part moving by its own motion than staying put; `cost`: how much higher
-    it is with the part moving by `into`'s motion instead of its own."""
+    it is with the part moving by `into`'s motion instead of its own; `turn`: the part's own
+    (quaternion, translation) when it turned, None when it slid."""
 
     part: int
     into: int
     gain: float
     cost: float
+    turn: tuple[torch.Tensor, torch.Tensor] | None = field(default=None, compare=False)
 
     def record(self) -> dict:
         return {"part": self.part, "into": self.into, "gain": self.gain, "cost": self.cost}
@@ -130,8 +133,26 @@ def _next_merge(state: RefineState, kept_apart: set[frozenset[int]],
             if costs[into] > allowed or pair in kept_apart:
                 continue
             if into == 0 or _in_line(state, ids, k, into, cell):
-                return Merge(k, into, gain, costs[into])
+                turn = None if bool(state.motion.prismatic[k]) else part_motion(state.motion, k)
+                return Merge(k, into, gain, costs[into], turn)
     return None
+
+
+def joined_turns(merges: Sequence[Merge]) -> dict[int, list[tuple[torch.Tensor, torch.Tensor]]]:
+    """Per movable part left after `merges` (in the order made), the own turns of the parts
+    that joined it, directly or through a part that joined it later."""
+    into = {m.part: m.into for m in merges}
+
+    def last(j: int) -> int:
+        while j in into:
+            j = into[j]
+        return j
+
+    turns: dict[int, list[tuple[torch.Tensor, torch.Tensor]]] = {}
+    for m in merges:
+        if m.turn is not None and (holder := last(m.into)) != 0:
+            turns.setdefault(holder, []).append(m.turn)
+    return turns
 
 
 def _body_cell(g: Gaussians) -> float:
