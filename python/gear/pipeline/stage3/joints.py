@@ -6,7 +6,8 @@ import numpy as np
 import torch
 
 from gear.articulation import PartMotion, extract_joint
-from gear.kinematics import dq_conj
+from gear.kinematics import dq_conj, dq_to_rt
+from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY
 from gear.splats import Gaussians
 
 
@@ -18,6 +19,31 @@ def solid_means(g: Gaussians, among: torch.Tensor | None = None) -> torch.Tensor
     if among is not None:
         means, solid = means[among], solid[among]
     return means[solid] if int(solid.sum()) >= 4 else means
+
+
+def part_motion(motion: PartMotion, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(unit quaternion, translation) of part k of `motion`, in float64."""
+    qr, qd = motion.motion()
+    quat, trans = dq_to_rt(qr[k], qd[k])
+    return quat.detach().to(torch.float64), trans.detach().to(torch.float64)
+
+
+class SurfaceCentres:
+    """A model's surface centres, the ones stage 2 reads shapes from (opacity above
+    STAGE2_MIN_OPACITY: surface, not haze), in float64, per part of its logits."""
+
+    def __init__(self, g: Gaussians):
+        self.means = g["means"].detach().to(torch.float64)
+        self.ids = g.part_ids()
+        self.opaque = torch.sigmoid(g["opacity"].detach()) > STAGE2_MIN_OPACITY
+
+    def of_part(self, k: int) -> torch.Tensor:
+        """Part k's surface centres [M, 3]."""
+        return self.means[(self.ids == k) & self.opaque]
+
+    def all(self) -> torch.Tensor:
+        """Every part's surface centres [M, 3]."""
+        return self.means[self.opaque]
 
 
 def object_center(g: Gaussians) -> np.ndarray:

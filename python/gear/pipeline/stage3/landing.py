@@ -31,11 +31,11 @@ from gear.pipeline.stage2.hypotheses import (
     refine_turn,
     surface_fit,
 )
-from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY
 from gear.pipeline.stage3.joint_types import image_loss
+from gear.pipeline.stage3.joints import SurfaceCentres, part_motion
 from gear.pipeline.stage3.rods import round_rod
 from gear.pipeline.stage3.shared import RefineState
-from gear.pipeline.stage3.square_axes import SQUARE_MARGIN, part_motion, with_part
+from gear.pipeline.stage3.square_axes import SQUARE_MARGIN, with_part
 from gear.splats import Gaussians
 
 # The local search, in fractions of the object's extent (the diagonal of its centres' box):
@@ -71,14 +71,11 @@ def land_hinges(state: RefineState, target: Gaussians,
     Returns a record per hinge tried: the fits, where the search started, how far the axis,
     pivot and angle moved from there, both losses (when scored) and whether it was kept."""
     g, motion = state.gaussians, state.motion
-    ids = g.part_ids()
-    opaque = torch.sigmoid(g["opacity"].detach()) > STAGE2_MIN_OPACITY
-    target_opaque = torch.sigmoid(target["opacity"].detach()) > STAGE2_MIN_OPACITY
-    target_centres = target["means"].detach()[target_opaque].to(torch.float64).numpy()
-    means = g["means"].detach().to(torch.float64)
-    if len(target_centres) < MIN_CENTRES or not bool(opaque.any()):
+    surface = SurfaceCentres(g)
+    target_centres = SurfaceCentres(target).all().numpy()
+    centres = surface.all().numpy()
+    if len(target_centres) < MIN_CENTRES or len(centres) == 0:
         return []
-    centres = means[opaque].numpy()
     extent = float(np.linalg.norm(centres.max(axis=0) - centres.min(axis=0)))
     tree = NearestTree(target_centres)
     # No width below twice the target's centre spacing: a sparse model (a short run's) would
@@ -93,7 +90,7 @@ def land_hinges(state: RefineState, target: Gaussians,
     records = []
     current = None  # the image loss of `motion`, once a hinge is scored
     for k in state.live_parts():
-        points = means[(ids == k) & opaque].numpy()
+        points = surface.of_part(k).numpy()
         # A round rod's twist about its length moves its surface as little as the images
         # see of it: it keeps the swing untwist_rods gave it.
         if bool(motion.prismatic[k]) or len(points) < MIN_CENTRES \

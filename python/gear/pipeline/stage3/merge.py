@@ -19,9 +19,8 @@ from gear.kinematics import dq_to_rt, quat_angle
 from gear.pipeline.stage2.parts import IN_LINE_SHARE
 from gear.pipeline.stage2.voxels import Scale
 from gear.pipeline.stage3.joint_types import image_loss
-from gear.pipeline.stage3.joints import object_center, object_radius, solid_means
+from gear.pipeline.stage3.joints import object_center, object_radius, part_motion, solid_means
 from gear.pipeline.stage3.shared import RefineState
-from gear.pipeline.stage3.square_axes import part_motion
 from gear.splats import Gaussians
 
 # A part merges when another motion costs it at most this share of what its own motion gains

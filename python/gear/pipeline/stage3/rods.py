@@ -14,14 +14,13 @@ import torch
 
 from gear.kinematics import (
     dq_from_rt,
-    dq_to_rt,
     quat_angle,
     quat_from_axis_angle,
     quat_from_matrix,
     quat_to_matrix,
 )
 from gear.pipeline.stage2.hypotheses import Plane, fit_plane
-from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY
+from gear.pipeline.stage3.joints import SurfaceCentres, part_motion
 from gear.pipeline.stage3.shared import RefineState
 
 # A part is a rod when the extent of its opaque centres along its longest direction (stage 2's
@@ -43,17 +42,13 @@ def untwist_rods(state: RefineState) -> list[dict]:
     per part changed: its twist and how far its axis moved (degrees), the largest shift of its
     centres and the principal extents of its shape."""
     g, motion = state.gaussians, state.motion
-    ids = g.part_ids()
-    # Surface, not haze: the centres stage 2 reads shapes from.
-    opaque = torch.sigmoid(g["opacity"].detach()) > STAGE2_MIN_OPACITY
-    means = g["means"].detach().to(torch.float64)
-    qr, qd = motion.motion()
+    surface = SurfaceCentres(g)
     changed = []
     for k in range(1, motion.num_parts):
-        points = means[(ids == k) & opaque]
+        points = surface.of_part(k)
         if bool(motion.prismatic[k]) or len(points) < MIN_CENTRES:
             continue
-        quat, trans = (x.detach().to(torch.float64) for x in dq_to_rt(qr[k], qd[k]))
+        quat, trans = part_motion(motion, k)
         swing = rod_swing(points, quat, trans)
         if swing is None:
             continue

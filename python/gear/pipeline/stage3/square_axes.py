@@ -21,14 +21,13 @@ from gear.articulation import PartMotion
 from gear.camera import capture_up
 from gear.kinematics import (
     dq_from_rt,
-    dq_to_rt,
     quat_axis_angle,
     quat_from_axis_angle,
     quat_to_matrix,
 )
 from gear.pipeline.stage2.frame import MIN_CENTRES, body_frame, upright_frame
-from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY
 from gear.pipeline.stage3.joint_types import image_loss, scoring_loss
+from gear.pipeline.stage3.joints import SurfaceCentres, part_motion
 from gear.pipeline.stage3.shared import RefineState
 
 # An axis is tried along a direction of the frame that lies within this of it: a real sink
@@ -105,22 +104,20 @@ def square_axes(state: RefineState) -> list[dict]:
     Returns a record per part tried: how far its axis moved, both losses and whether it was
     kept."""
     g, motion = state.gaussians, state.motion
-    ids = g.part_ids()
-    opaque = torch.sigmoid(g["opacity"].detach()) > STAGE2_MIN_OPACITY
-    body = g["means"].detach()[(ids == 0) & opaque].numpy()
+    surface = SurfaceCentres(g)
+    body = surface.of_part(0).numpy()
     frame = body_frame(body)
     if frame is None:
         cameras = [v.camera for v in state.canonical_views + state.target_views]
         frame = upright_frame(body, capture_up(cameras))
     if frame is None:
         return []
-    means = g["means"].detach().to(torch.float64)
     records = []
     current = None  # the image loss of `motion`, once a part is tried
     for k in state.live_parts():
         if k in state.held_slides:
             continue
-        points = means[(ids == k) & opaque]
+        points = surface.of_part(k)
         if len(points) < MIN_CENTRES:
             continue
         prismatic = bool(motion.prismatic[k])
@@ -196,13 +193,6 @@ def _settled(state: RefineState, motion: PartMotion, k: int, quat: torch.Tensor,
     if not all(bool(torch.isfinite(x).all()) for x in settled):
         return quat, trans
     return settled
-
-
-def part_motion(motion: PartMotion, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(unit quaternion, translation) of part k of `motion`, in float64."""
-    qr, qd = motion.motion()
-    quat, trans = dq_to_rt(qr[k], qd[k])
-    return quat.detach().to(torch.float64), trans.detach().to(torch.float64)
 
 
 def with_part(motion: PartMotion, k: int, rt: tuple[torch.Tensor, torch.Tensor],
