@@ -12,7 +12,6 @@ from gear.config import make_config
 from gear.kinematics import dq_from_rt, quat_from_axis_angle, quat_to_matrix
 from gear.pipeline.stage3 import Refine
 from gear.pipeline.stage3.landing import LANDING_SEARCH
-from gear.pipeline.stage3.merge import Merge, joined_turns
 from stage3_scenes import OFFSET, grid_gaussians, views_of
 
 DTYPE = torch.float64
@@ -104,35 +103,6 @@ def test_a_door_stopped_short_about_a_shifted_pivot_lands_on_the_target():
     axis = np.asarray(after["axis"]) / np.linalg.norm(after["axis"])
     assert math.degrees(math.acos(min(1.0, abs(axis @ UP)))) < 0.5
     assert torch.isfinite(stage.motion.qr).all() and torch.isfinite(stage.motion.qd).all()
-
-
-def test_a_merged_part_lands_from_the_better_of_its_pieces_turns():
-    """A door that took, in the end-of-stage-3 merge, the motion of its larger piece (15
-    degrees short, beyond the search's angle bound) lands from the turn of the piece that
-    joined it; without that turn the search runs to its bound and nothing is kept."""
-    far = turn(OPEN_DEG - 15.0, PIVOT)
-    piece = turn(OPEN_DEG - 1.0, PIVOT + np.array([0.01, 0.0, 0.0]))
-    stage, target = door_stage(far, landed_on=turn(OPEN_DEG, PIVOT))
-    stage.land_hinges(target)
-    (alone,) = stage.events[0]["parts"]
-    assert alone["start"] == "own" and not alone["kept"], alone
-    stage, target = door_stage(far, landed_on=turn(OPEN_DEG, PIVOT))
-    stage.land_hinges(target, [Merge(part=2, into=1, gain=1.0, cost=0.0, turn=piece)])
-    (record,) = stage.events[0]["parts"]
-    assert record["start"] == "joined" and record["kept"], record
-    after = hinge_of(stage)
-    assert abs(abs(after["angle_deg"]) - OPEN_DEG) < 0.3, after
-    assert line_distance(after) < 0.01, after
-
-
-def test_joined_turns_follow_a_part_that_joined_later():
-    a, b = turn(10.0, PIVOT), turn(20.0, PIVOT)
-    merges = [Merge(3, 2, 1.0, 0.0, a), Merge(4, 0, 1.0, 0.0, b),
-              Merge(5, 2, 1.0, 0.0, None), Merge(2, 1, 1.0, 0.0, b)]
-    turns = joined_turns(merges)
-    # Part 3 joined 2, which joined 1; part 4 joined the static part; part 5 slid.
-    assert list(turns) == [1]
-    assert len(turns[1]) == 2 and turns[1][0] is a and turns[1][1] is b
 
 
 def test_a_hinge_the_target_agrees_with_is_left_bit_for_bit():

@@ -6,16 +6,12 @@ both states' images are rendered well. The target state's stage-1 model was trai
 images alone, and its surfaces hold what the images pin down: its edges, its thickness. At
 the end of stage 3 each hinge is searched locally (axis tilt, pivot, angle) for the turn that
 lays its part's centres on that model's (hypotheses.refine_turn, coarse to fine), and kept
-when it lands them clearly closer and the images do not see it clearly worse. A part that
-others joined at the end of stage 3 is searched from whichever of their turns and its own
-lays it best: the images leave a merged part's two motions within noise of each other, and
-the one kept was the larger piece's, not the better one's (docs/method.md, "Hinges landed on
-the target's reconstruction")."""
+when it lands them clearly closer and the images do not see it clearly worse
+(docs/method.md, "Hinges landed on the target's reconstruction")."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -58,18 +54,14 @@ MIN_LANDING_GAIN = 0.15
 AT_BOUND = 0.95
 
 
-def land_hinges(state: RefineState, target: Gaussians,
-                joined: Mapping[int, Sequence[tuple[torch.Tensor, torch.Tensor]]] = {},
-                ) -> list[dict]:
+def land_hinges(state: RefineState, target: Gaussians) -> list[dict]:
     """Refines every hinge of `state` by landing its part's opaque canonical centres on the
     opaque centres of `target` (the target state's stage-1 model), and keeps the landed turn
     where the fit gains MIN_LANDING_GAIN, the search stopped short of its bounds and the image
-    loss stays within SQUARE_MARGIN of the current one's. The search starts from the part's
-    turn or, when it fits better, from one of `joined[k]` (the (quaternion, translation) of
-    parts that joined part k). Slides and round rods are left as they are (a slide's travel is
-    what the images see best; a rod keeps its swing).
-    Returns a record per hinge tried: the fits, where the search started, how far the axis,
-    pivot and angle moved from there, both losses (when scored) and whether it was kept."""
+    loss stays within SQUARE_MARGIN of the current one's. Slides and round rods are left as
+    they are (a slide's travel is what the images see best; a rod keeps its swing).
+    Returns a record per hinge tried: the fits, how far the axis, pivot and angle moved, both
+    losses (when scored) and whether it was kept."""
     g, motion = state.gaussians, state.motion
     surface = SurfaceCentres(g)
     target_centres = SurfaceCentres(target).all().numpy()
@@ -96,18 +88,14 @@ def land_hinges(state: RefineState, target: Gaussians,
         if bool(motion.prismatic[k]) or len(points) < MIN_CENTRES \
                 or round_rod(fit_plane(points)):
             continue
-        starts = [_matrix_turn(part_motion(motion, k))]
-        starts += [_matrix_turn(turn) for turn in joined.get(k, ())]
-        fits = [fit(points, *start) for start in starts]
-        chosen = int(np.argmax(fits))  # the part's own turn on a tie
-        landed_rot, landed_trans = refine_turn(points, *starts[chosen], extent, fit,
-                                               LANDING_SEARCH)
+        quat, trans = part_motion(motion, k)
+        rot, trans = quat_to_matrix(quat).numpy(), trans.numpy()
+        landed_rot, landed_trans = refine_turn(points, rot, trans, extent, fit, LANDING_SEARCH)
         if not (np.isfinite(landed_rot).all() and np.isfinite(landed_trans).all()):
             continue
-        before, after = fits[0], fit(points, landed_rot, landed_trans)
+        before, after = fit(points, rot, trans), fit(points, landed_rot, landed_trans)
         record = {"part": k, "fit": round(before, 4), "landed_fit": round(after, 4),
-                  "start": "own" if chosen == 0 else "joined",
-                  **_moved(starts[chosen], (landed_rot, landed_trans), points.mean(axis=0)),
+                  **_moved((rot, trans), (landed_rot, landed_trans), points.mean(axis=0)),
                   "kept": False}
         records.append(record)
         if after < before * (1 + MIN_LANDING_GAIN) or _at_bounds(record):
@@ -122,13 +110,6 @@ def land_hinges(state: RefineState, target: Gaussians,
             motion.set_part(k, *dq_from_rt(*landed), prismatic=False)
             current = landed_loss
     return records
-
-
-def _matrix_turn(rt: tuple[torch.Tensor, torch.Tensor]) -> tuple[np.ndarray, np.ndarray]:
-    """(rotation matrix, translation) in float64 numpy of rt = (quaternion, translation)."""
-    quat, trans = rt
-    return (quat_to_matrix(quat.to(torch.float64)).numpy(),
-            trans.to(torch.float64).numpy())
 
 
 def _moved(turn: tuple[np.ndarray, np.ndarray], landed: tuple[np.ndarray, np.ndarray],

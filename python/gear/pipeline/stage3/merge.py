@@ -8,7 +8,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -19,7 +19,7 @@ from gear.kinematics import dq_to_rt, quat_angle
 from gear.pipeline.stage2.parts import IN_LINE_SHARE
 from gear.pipeline.stage2.voxels import Scale
 from gear.pipeline.stage3.joint_types import image_loss
-from gear.pipeline.stage3.joints import object_center, object_radius, part_motion, solid_means
+from gear.pipeline.stage3.joints import object_center, object_radius, solid_means
 from gear.pipeline.stage3.shared import RefineState
 from gear.splats import Gaussians
 
@@ -71,14 +71,12 @@ FORGET_LOGIT = 20.0
 class Merge:
     """Part `part` joined part `into` (0: the static part). `gain`: how much lower the image
     loss is with the part moving by its own motion than staying put; `cost`: how much higher
-    it is with the part moving by `into`'s motion instead of its own; `turn`: the part's own
-    (quaternion, translation) when it turned, None when it slid."""
+    it is with the part moving by `into`'s motion instead of its own."""
 
     part: int
     into: int
     gain: float
     cost: float
-    turn: tuple[torch.Tensor, torch.Tensor] | None = field(default=None, compare=False)
 
     def record(self) -> dict:
         return {"part": self.part, "into": self.into, "gain": self.gain, "cost": self.cost}
@@ -132,26 +130,8 @@ def _next_merge(state: RefineState, kept_apart: set[frozenset[int]],
             if costs[into] > allowed or pair in kept_apart:
                 continue
             if into == 0 or _in_line(state, ids, k, into, cell):
-                turn = None if bool(state.motion.prismatic[k]) else part_motion(state.motion, k)
-                return Merge(k, into, gain, costs[into], turn)
+                return Merge(k, into, gain, costs[into])
     return None
-
-
-def joined_turns(merges: Sequence[Merge]) -> dict[int, list[tuple[torch.Tensor, torch.Tensor]]]:
-    """Per movable part left after `merges` (in the order made), the own turns of the parts
-    that joined it, directly or through a part that joined it later."""
-    into = {m.part: m.into for m in merges}
-
-    def last(j: int) -> int:
-        while j in into:
-            j = into[j]
-        return j
-
-    turns: dict[int, list[tuple[torch.Tensor, torch.Tensor]]] = {}
-    for m in merges:
-        if m.turn is not None and (holder := last(m.into)) != 0:
-            turns.setdefault(holder, []).append(m.turn)
-    return turns
 
 
 def _body_cell(g: Gaussians) -> float:

@@ -19,7 +19,7 @@ from gear.pipeline.stage3.estep import gaussian_step
 from gear.pipeline.stage3.joint_types import classify
 from gear.pipeline.stage3.joints import object_center, start_to_end_joints
 from gear.pipeline.stage3.landing import land_hinges
-from gear.pipeline.stage3.merge import Merge, joined_turns, merge_parts
+from gear.pipeline.stage3.merge import merge_parts
 from gear.pipeline.stage3.mstep import motion_step
 from gear.pipeline.stage3.rods import untwist_rods
 from gear.pipeline.stage3.shared import RefineState
@@ -72,14 +72,12 @@ class Refine(RefineState):
         return terms
 
     def merge_parts_read_twice(self, apart: Sequence[tuple[int, int]] = (),
-                               halves: Sequence[tuple[int, int]] = ()) -> list[Merge]:
+                               halves: Sequence[tuple[int, int]] = ()) -> None:
         """merge.merge_parts (no pair of `apart` joined, the pairs of `halves` held to their
-        tighter share), when the config asks for it, recorded as an event; the merges made."""
-        if not self.config.merge_redundant_parts:
-            return []
-        merged = merge_parts(self, apart, halves)
-        self.events.append({"event": "part_merge", "merges": [m.record() for m in merged]})
-        return merged
+        tighter share), when the config asks for it, recorded as an event."""
+        if self.config.merge_redundant_parts:
+            merged = merge_parts(self, apart, halves)
+            self.events.append({"event": "part_merge", "merges": [m.record() for m in merged]})
 
     def untwist_rods(self) -> None:
         """rods.untwist_rods, when the config asks for it, recorded as an event."""
@@ -91,13 +89,11 @@ class Refine(RefineState):
         if self.config.square_axes:
             self.events.append({"event": "axis_square", "parts": square_axes(self)})
 
-    def land_hinges(self, target: Gaussians | None, merges: Sequence[Merge] = ()) -> None:
-        """landing.land_hinges on the target state's stage-1 model `target` (each hinge also
-        searched from the turns of the parts that joined it in `merges`), when the config asks
-        for it and there is one, recorded as an event."""
+    def land_hinges(self, target: Gaussians | None) -> None:
+        """landing.land_hinges on the target state's stage-1 model `target`, when the config
+        asks for it and there is one, recorded as an event."""
         if self.config.land_hinges and target is not None:
-            landed = land_hinges(self, target, joined_turns(merges))
-            self.events.append({"event": "hinge_landing", "parts": landed})
+            self.events.append({"event": "hinge_landing", "parts": land_hinges(self, target)})
 
     def result(self) -> Stage3Result:
         return Stage3Result(self.gaussians, self.motion, self.canonical)
@@ -195,10 +191,10 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
     # joint-type decision (a scissors blade's tip, given a turn of 8 degrees by an older
     # stage 2, ended within 1 degree of the blade's 34 and stayed a part).
     started = time.perf_counter()
-    merges = stage.merge_parts_read_twice(halves=stage.halves)
+    stage.merge_parts_read_twice(halves=stage.halves)
     stage.untwist_rods()
     stage.square_axes()
-    stage.land_hinges(models.get(coarse.target), merges)
+    stage.land_hinges(models.get(coarse.target))
     runner.write_events(stage, when="end")
     runner.timed(stage.name, time.perf_counter() - started)
     result = stage.result()
