@@ -252,6 +252,12 @@ class VoxelGrid:
         return tuple(self.origin.tolist()), self.voxel_size, self.shape
 
 
+def box_diagonal(points: np.ndarray) -> float:
+    """The diagonal of the axis-aligned box bounding ``points`` [N, 3] (N >= 1): an object's
+    size for search widths and tolerances."""
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
 def share_in_line(points: np.ndarray, other: np.ndarray, direction: np.ndarray,
                   margin: float, trim: float = 0.0) -> float:
     """The share of ``points`` [N, 3] that fall, seen along ``direction``, inside the box

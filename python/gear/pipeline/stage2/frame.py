@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from gear.geometry import box_diagonal
 from gear.pipeline.stage2.hypotheses import ransac_plane
 
 # The body's faces: RANSAC planes of its opaque centres (an even subsample of at most
@@ -44,7 +45,7 @@ def body_frame(points: np.ndarray, seed: int = 0) -> np.ndarray | None:
     pts = _frame_sample(points)
     if len(pts) < MIN_CENTRES:
         return None
-    size = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    size = box_diagonal(pts)
     rng = np.random.default_rng(seed)
     first = _face_direction(pts, size, rng, None)
     if first is None:
@@ -70,7 +71,7 @@ def upright_frame(points: np.ndarray, up: np.ndarray | None, seed: int = 0) -> n
     pts = _frame_sample(points)
     if len(pts) < MIN_CENTRES:
         return up[None]
-    size = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    size = box_diagonal(pts)
     face = _face_direction(pts, size, np.random.default_rng(seed), up)
     if face is None:
         return up[None]

@@ -11,11 +11,17 @@ from gear.pipeline.stage2.initialise import STAGE2_MIN_OPACITY
 from gear.splats import Gaussians
 
 
+def opaque(g: Gaussians) -> torch.Tensor:
+    """Which Gaussians are surface, not haze: opacity above STAGE2_MIN_OPACITY, the bar stage 2
+    reads shapes with (bool [N])."""
+    return torch.sigmoid(g["opacity"].detach()) > STAGE2_MIN_OPACITY
+
+
 def solid_means(g: Gaussians, among: torch.Tensor | None = None) -> torch.Tensor:
     """Centres of the opaque Gaussians (of those in the bool mask `among`, if given; all of
     them when fewer than 4 are opaque)."""
     means = g["means"].detach()
-    solid = torch.sigmoid(g["opacity"].detach()) > 0.5
+    solid = opaque(g)
     if among is not None:
         means, solid = means[among], solid[among]
     return means[solid] if int(solid.sum()) >= 4 else means
@@ -35,7 +41,7 @@ class SurfaceCentres:
     def __init__(self, g: Gaussians):
         self.means = g["means"].detach().to(torch.float64)
         self.ids = g.part_ids()
-        self.opaque = torch.sigmoid(g["opacity"].detach()) > STAGE2_MIN_OPACITY
+        self.opaque = opaque(g)
 
     def of_part(self, k: int) -> torch.Tensor:
         """Part k's surface centres [M, 3]."""

@@ -16,7 +16,7 @@ import math
 import numpy as np
 import torch
 
-from gear.geometry import NearestTree
+from gear.geometry import NearestTree, box_diagonal
 from gear.kinematics import dq_from_rt, quat_from_matrix, quat_to_matrix
 from gear.pipeline.stage2.frame import MIN_CENTRES
 from gear.pipeline.stage2.hypotheses import (
@@ -68,7 +68,7 @@ def land_hinges(state: RefineState, target: Gaussians) -> list[dict]:
     centres = surface.all().numpy()
     if len(target_centres) < MIN_CENTRES or len(centres) == 0:
         return []
-    extent = float(np.linalg.norm(centres.max(axis=0) - centres.min(axis=0)))
+    extent = box_diagonal(centres)
     tree = NearestTree(target_centres)
     # No width below twice the target's centre spacing: a sparse model (a short run's) would
     # show nothing landing at all.
