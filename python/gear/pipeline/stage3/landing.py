@@ -63,10 +63,10 @@ IMAGE_COST_PER_GAIN = 0.1
 def land_hinges(state: RefineState, target: Gaussians) -> list[dict]:
     """Refines every hinge of `state` by landing its part's opaque canonical centres on the
     opaque centres of `target` (the target state's stage-1 model), and keeps the landed turn
-    where the fit gains MIN_LANDING_GAIN, the search stopped short of its bounds and the image
-    loss stays within IMAGE_COST_PER_GAIN of that gain (SQUARE_MARGIN at most) of the current
-    one's. Slides and round rods are left as
-    they are (a slide's travel is what the images see best; a rod keeps its swing).
+    where the fit gains MIN_LANDING_GAIN, the search stopped short of its bounds and the images
+    see it worse than the current motion by no more than IMAGE_COST_PER_GAIN of that gain
+    (SQUARE_MARGIN at most). Slides and round rods are left as they are (a slide's travel is
+    what the images see best; a rod keeps its swing).
     Returns a record per hinge tried: the fits, how far the axis, pivot and angle moved, both
     losses (when scored) and whether it was kept."""
     g, motion = state.gaussians, state.motion
