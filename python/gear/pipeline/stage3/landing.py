@@ -105,13 +105,15 @@ def land_hinges(state: RefineState, target: Gaussians) -> list[dict]:
                   **_moved((rot, trans), (landed_rot, landed_trans), points.mean(axis=0)),
                   "kept": False}
         records.append(record)
-        if after < before * (1 + MIN_LANDING_GAIN) or _at_bounds(record):
+        # A part none of whose centres lay on the target (fit 0) gains without bound.
+        gain = after / before - 1 if before > 0 else math.inf
+        if gain < MIN_LANDING_GAIN or _at_bounds(record):
             continue
         landed = (quat_from_matrix(torch.as_tensor(landed_rot)), torch.as_tensor(landed_trans))
         if current is None:
             current = image_loss(state, motion)
         landed_loss = image_loss(state, with_part(motion, k, landed, prismatic=False))
-        allowed = min(SQUARE_MARGIN, IMAGE_COST_PER_GAIN * (after / before - 1))
+        allowed = min(SQUARE_MARGIN, IMAGE_COST_PER_GAIN * gain)
         record.update(loss=current, landed_loss=landed_loss,
                       kept=landed_loss <= current * (1 + allowed))
         if record["kept"]:
