@@ -1,6 +1,9 @@
-"""Hinges landed on the target's reconstruction (gear.pipeline.stage3.landing): a door whose
-trained turn stopped short about a shifted pivot is moved to the turn that lays it on the
-target state's model, and nothing moves where that model agrees with the motion already."""
+"""Hinges corrected at the end of stage 3. Landed on the target's reconstruction
+(gear.pipeline.stage3.landing): a door whose trained turn stopped short about a shifted pivot
+is moved to the turn that lays it on the target state's model, and nothing moves where that
+model agrees with the motion already. Stage 2's lines tried again
+(gear.pipeline.stage3.hinge_lines): a turn carried off its line goes back to stage 2's where
+the images see it better, and stays where they do not."""
 
 import math
 
@@ -11,6 +14,7 @@ from gear.articulation import PartMotion
 from gear.config import make_config
 from gear.kinematics import dq_from_rt, quat_from_axis_angle, quat_to_matrix
 from gear.pipeline.stage3 import Refine
+from gear.pipeline.stage3.hinge_lines import MIN_TURN_RAD
 from gear.pipeline.stage3.landing import IMAGE_COST_PER_GAIN, LANDING_SEARCH, MIN_LANDING_GAIN
 from gear.pipeline.stage3.square_axes import SQUARE_MARGIN
 from stage3_scenes import OFFSET, grid_gaussians, views_of
@@ -60,15 +64,22 @@ def motion_of(rt: tuple[torch.Tensor, ...], prismatic: bool = False) -> PartMoti
     return motion
 
 
+def rigid(rt: tuple[torch.Tensor, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """A (quaternion, translation) turn as stage 2's (R, t) guess."""
+    quat, trans = rt
+    return quat_to_matrix(quat).numpy(), trans.numpy()
+
+
 def door_stage(trained: tuple[torch.Tensor, ...], landed_on: tuple[torch.Tensor, ...],
-               prismatic: bool = False):
-    """(a Refine of the box and its door trained to `trained`, its target images and the
-    target state's model made with the door moved by the truth's turn; that model with the
-    door moved by `landed_on`)."""
+               prismatic: bool = False, stage2: tuple[torch.Tensor, ...] | None = None):
+    """(a Refine of the box and its door trained to `trained` (stage 2's guess `stage2`, when
+    given), its target images and the target state's model made with the door moved by the
+    truth's turn; that model with the door moved by `landed_on`)."""
     g = grid_gaussians([(body(), 0), (door(), 1)])
     views = views_of(g, motion_of(turn(OPEN_DEG, PIVOT)), n=4)
+    guesses = [] if stage2 is None else [[rigid(stage2)]]
     stage = Refine(g, motion_of(trained, prismatic), None, views, views, make_config("quick"),
-                   seed=0)
+                   seed=0, init_motions=guesses)
     quat, trans = landed_on
     world = door().double() + torch.as_tensor(OFFSET)
     moved = (world @ quat_to_matrix(quat).T + trans - torch.as_tensor(OFFSET)).float()
@@ -153,5 +164,58 @@ def test_slides_and_a_config_that_turns_it_off_leave_the_motion():
     stage.config.land_hinges = False
     qr, qd = stage.motion.qr.detach().clone(), stage.motion.qd.detach().clone()
     stage.land_hinges(target)
+    assert stage.events == []
+    assert torch.equal(stage.motion.qr.detach(), qr) and torch.equal(stage.motion.qd.detach(), qd)
+
+
+def test_a_turn_carried_off_stage_2s_line_goes_back_where_the_images_see_it_better():
+    """Trained to the true angle about a line 0.05 off; stage 2 had the true line (and an
+    angle 4 degrees short): the trained turn about stage 2's line is the truth."""
+    truth = turn(OPEN_DEG, PIVOT)
+    carried = turn(OPEN_DEG, PIVOT + np.array([0.04, -0.03, 0.0]))
+    stage, _ = door_stage(carried, landed_on=truth, stage2=turn(OPEN_DEG - 4.0, PIVOT))
+    assert line_distance(hinge_of(stage)) > 0.045
+    stage.recall_hinge_lines()
+    (event,) = stage.events
+    (record,) = event["parts"]
+    assert event["event"] == "hinge_lines" and record["kept"], record
+    assert record["recalled_loss"] < record["loss"]
+    assert abs(record["pivot_moved"] - 0.05) < 1e-3, record
+    after = hinge_of(stage)
+    assert line_distance(after) < 1e-3, after
+    assert abs(abs(after["angle_deg"]) - OPEN_DEG) < 1e-3, after
+    assert torch.isfinite(stage.motion.qr).all() and torch.isfinite(stage.motion.qd).all()
+
+
+def test_stage_2s_line_the_images_see_worse_is_refused_bit_for_bit():
+    """Trained to the truth; stage 2's line lay 0.05 off: the images refuse it."""
+    truth = turn(OPEN_DEG, PIVOT)
+    stage, _ = door_stage(truth, landed_on=truth,
+                          stage2=turn(OPEN_DEG, PIVOT + np.array([0.03, 0.04, 0.0])))
+    qr, qd = stage.motion.qr.detach().clone(), stage.motion.qd.detach().clone()
+    stage.recall_hinge_lines()
+    (record,) = stage.events[0]["parts"]
+    assert not record["kept"] and record["recalled_loss"] > record["loss"], record
+    assert torch.equal(stage.motion.qr.detach(), qr) and torch.equal(stage.motion.qd.detach(), qd)
+
+
+def test_no_line_to_recall_from_a_slide_or_no_guess_or_with_the_config_off():
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=DTYPE)
+    slide = (identity, torch.tensor([0.0, -0.2, 0.0], dtype=DTYPE))
+    carried = turn(OPEN_DEG, PIVOT + np.array([0.04, -0.03, 0.0]))
+    # Stage 2 guessed only a slide (a turn below MIN_TURN_RAD): no line to offer.
+    nearly = turn(math.degrees(MIN_TURN_RAD) / 2, PIVOT)
+    for guess in (slide, nearly, None):
+        stage, _ = door_stage(carried, landed_on=carried, stage2=guess)
+        stage.recall_hinge_lines()
+        assert stage.events[0]["parts"] == []
+    # A part trained as a slide is left alone, whatever stage 2 guessed.
+    stage, _ = door_stage(slide, landed_on=slide, prismatic=True, stage2=turn(OPEN_DEG, PIVOT))
+    stage.recall_hinge_lines()
+    assert stage.events[0]["parts"] == []
+    stage, _ = door_stage(carried, landed_on=carried, stage2=turn(OPEN_DEG, PIVOT))
+    stage.config.recall_hinge_lines = False
+    qr, qd = stage.motion.qr.detach().clone(), stage.motion.qd.detach().clone()
+    stage.recall_hinge_lines()
     assert stage.events == []
     assert torch.equal(stage.motion.qr.detach(), qr) and torch.equal(stage.motion.qd.detach(), qd)

@@ -69,6 +69,10 @@ class TrainConfig:
     # closer and the images do not see it worse (docs/method.md, "Hinges landed on the
     # target's reconstruction")
     land_hinges: bool = True
+    # [beyond] at the end of stage 3, after the landing, each hinge's turn tried about the line
+    # stage 2 gave it, kept where the images see it better (docs/method.md, "Stage 2's hinge
+    # lines tried again")
+    recall_hinge_lines: bool = True
     # [beyond] with K estimated, a hinged part tall along its axis enters stage 3 cut in two
     # (doors stacked on one hinge line); the merge of parts read twice joins the halves again
     # when one motion explains both (docs/method.md, "Doors stacked on one hinge line")

@@ -16,6 +16,7 @@ from gear.pipeline.common import TrainView
 from gear.pipeline.runner import Runner
 from gear.pipeline.stage2 import Stage2Result
 from gear.pipeline.stage3.estep import gaussian_step
+from gear.pipeline.stage3.hinge_lines import recall_hinge_lines
 from gear.pipeline.stage3.joint_types import classify
 from gear.pipeline.stage3.joints import object_center, start_to_end_joints
 from gear.pipeline.stage3.landing import land_hinges
@@ -94,6 +95,11 @@ class Refine(RefineState):
         asks for it and there is one, recorded as an event."""
         if self.config.land_hinges and target is not None:
             self.events.append({"event": "hinge_landing", "parts": land_hinges(self, target)})
+
+    def recall_hinge_lines(self) -> None:
+        """hinge_lines.recall_hinge_lines, when the config asks for it, recorded as an event."""
+        if self.config.recall_hinge_lines:
+            self.events.append({"event": "hinge_lines", "parts": recall_hinge_lines(self)})
 
     def result(self) -> Stage3Result:
         return Stage3Result(self.gaussians, self.motion, self.canonical)
@@ -195,6 +201,7 @@ def refine_parts(models: dict[str, Gaussians], coarse: Stage2Result,
     stage.untwist_rods()
     stage.square_axes()
     stage.land_hinges(models.get(coarse.target))
+    stage.recall_hinge_lines()
     runner.write_events(stage, when="end")
     runner.timed(stage.name, time.perf_counter() - started)
     result = stage.result()
